@@ -1,0 +1,163 @@
+"""Typed progress events and the sink interface through which methods report them.
+
+Every event is a pydantic model with a ``kind`` tag, so it serialises to JSON as is
+(``event.model_dump_json()``) and parses back with `parse_event`. Methods never know who
+listens: they call ``sink.emit(event)``; the CLI, the job service and the viewers are sinks.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Iterable
+from typing import Annotated, Literal, Protocol, runtime_checkable
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
+
+from strep_core.errors import Cancelled
+
+
+class _Event(BaseModel):
+    model_config = ConfigDict(frozen=True)
+
+
+class StartEvent(_Event):
+    """A run begins."""
+
+    kind: Literal["start"] = "start"
+    method: str
+    sequence: str
+    frames: int
+    dims: int
+    unit: str
+    total_iterations: int = Field(description="iterations planned (frames for incremental methods)")
+    initial_guess: str
+
+
+class IterationEvent(_Event):
+    """Progress of an iterative method, emitted every ``event_interval`` iterations."""
+
+    kind: Literal["iteration"] = "iteration"
+    iteration: int = Field(description="iterations done so far (1-based)")
+    total: int
+    elapsed: float = Field(description="seconds since the run started")
+    losses: dict[str, float] = Field(default_factory=dict, description="loss terms, 'total' included")
+    poses: list[list[float]] | None = Field(
+        default=None,
+        description="current pose vector per frame: (x, y, theta) in 2D, (t, axis-angle) in 3D",
+    )
+    ate: float | None = Field(default=None, description="current ATE in the sequence unit")
+
+
+class StageEvent(_Event):
+    """A named stage of a run starts (e.g. the ICP warm start of a learned method)."""
+
+    kind: Literal["stage"] = "stage"
+    stage: str
+    elapsed: float
+
+
+class ResultEvent(_Event):
+    """The run finished; carries its metrics and final poses."""
+
+    kind: Literal["result"] = "result"
+    method: str
+    metrics: dict[str, float | int | str | None]
+    poses: list[list[float]]
+    iterations: int
+    wall_seconds: float
+
+
+Event = Annotated[StartEvent | IterationEvent | StageEvent | ResultEvent, Field(discriminator="kind")]
+_ADAPTER: TypeAdapter[Event] = TypeAdapter(Event)
+
+
+def parse_event(data: str | bytes | dict[str, object]) -> Event:
+    """Parse an event from its JSON text or dict."""
+    if isinstance(data, dict):
+        return _ADAPTER.validate_python(data)
+    return _ADAPTER.validate_json(data)
+
+
+def pose_list(pose_vectors: np.ndarray) -> list[list[float]]:
+    """``(K, 3|6)`` pose vectors -> nested lists of floats, rounded for compact JSON."""
+    return np.round(np.asarray(pose_vectors, dtype=np.float64), 6).tolist()
+
+
+# --------------------------------------------------------------------------------------------
+# Sinks
+
+
+@runtime_checkable
+class Sink(Protocol):
+    """Receives events. ``emit`` must return quickly and never raise into the method."""
+
+    def emit(self, event: Event) -> None: ...
+
+
+class NullSink:
+    """Drops every event (the default)."""
+
+    def emit(self, event: Event) -> None:
+        return None
+
+
+class ListSink:
+    """Keeps every event in order, for tests and replays."""
+
+    def __init__(self) -> None:
+        self.events: list[Event] = []
+
+    def emit(self, event: Event) -> None:
+        self.events.append(event)
+
+    def of_kind(self, kind: str) -> list[Event]:
+        return [e for e in self.events if e.kind == kind]
+
+
+class CallbackSink:
+    """Calls a function with every event."""
+
+    def __init__(self, fn: Callable[[Event], None]) -> None:
+        self.fn = fn
+
+    def emit(self, event: Event) -> None:
+        self.fn(event)
+
+
+class MultiSink:
+    """Forwards every event to several sinks."""
+
+    def __init__(self, sinks: Iterable[Sink]) -> None:
+        self.sinks = list(sinks)
+
+    def emit(self, event: Event) -> None:
+        for sink in self.sinks:
+            sink.emit(event)
+
+
+# --------------------------------------------------------------------------------------------
+# Cancellation
+
+
+class CancelFlag(Protocol):
+    def is_set(self) -> bool: ...
+
+
+class CancelToken:
+    """A thread-safe cancel flag (same interface as `threading.Event`)."""
+
+    def __init__(self) -> None:
+        self._event = threading.Event()
+
+    def set(self) -> None:
+        self._event.set()
+
+    def is_set(self) -> bool:
+        return self._event.is_set()
+
+
+def check_cancel(cancel: CancelFlag | None) -> None:
+    """Raise `Cancelled` if the flag is set. Methods call this between iterations."""
+    if cancel is not None and cancel.is_set():
+        raise Cancelled("the run was cancelled")

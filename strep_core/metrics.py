@@ -1,0 +1,119 @@
+"""Registration metrics: ATE, point-wise L2 to the ground-truth map, RPE.
+
+All lengths are in the sequence's unit (pixels or metres), angles in degrees where named so.
+Estimated trajectories are compared after a rigid alignment (rotation + translation, no
+scale; Umeyama 1991) of estimated positions onto ground-truth positions, because an
+unsupervised registration fixes the map only up to a rigid motion.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence as Seq
+
+import numpy as np
+
+from strep_core import geometry as g
+
+
+def align_rigid(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation ``(D, D)`` and translation ``(D,)`` minimising ``sum |R src_i + t - dst_i|^2``.
+
+    Args:
+        src: ``(N, D)`` points to move.
+        dst: ``(N, D)`` target points.
+    """
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    cov = (dst - mu_d).T @ (src - mu_s) / len(src)
+    u, _, vt = np.linalg.svd(cov)
+    s = np.eye(src.shape[1])
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        s[-1, -1] = -1.0
+    rot = u @ s @ vt
+    return rot, mu_d - rot @ mu_s
+
+
+def alignment_pose(est_poses: np.ndarray, gt_poses: np.ndarray) -> np.ndarray:
+    """The rigid transform ``(D+1, D+1)`` that best maps estimated positions onto ground truth."""
+    rot, t = align_rigid(g.translation(est_poses), g.translation(gt_poses))
+    d = rot.shape[0]
+    out = np.eye(d + 1)
+    out[:d, :d], out[:d, d] = rot, t
+    return out
+
+
+def aligned(est_poses: np.ndarray, gt_poses: np.ndarray) -> np.ndarray:
+    """Estimated poses ``(K, D+1, D+1)`` moved by `alignment_pose` into the ground truth's frame."""
+    return alignment_pose(est_poses, gt_poses)[None] @ est_poses
+
+
+def ate(est_poses: np.ndarray, gt_poses: np.ndarray) -> float:
+    """Absolute trajectory error: RMSE of positions after rigid alignment.
+
+    Args:
+        est_poses, gt_poses: ``(K, D+1, D+1)`` local -> world poses.
+    """
+    diff = g.translation(aligned(est_poses, gt_poses)) - g.translation(gt_poses)
+    return float(np.sqrt((diff**2).sum(-1).mean()))
+
+
+def point_l2(
+    frames: Seq[np.ndarray],
+    est_poses: np.ndarray,
+    gt_poses: np.ndarray,
+    *,
+    max_points_per_frame: int | None = 2000,
+) -> float:
+    """Mean distance between each point placed by the aligned estimate and by ground truth.
+
+    Args:
+        frames: ``K`` local point arrays ``(N_i, D)``.
+        est_poses, gt_poses: ``(K, D+1, D+1)``.
+        max_points_per_frame: evenly strided subsample per frame to bound the cost
+            (``None``: all points).
+    """
+    est = aligned(est_poses, gt_poses)
+    total, count = 0.0, 0
+    for pts, te, tg in zip(frames, est, gt_poses, strict=True):
+        if max_points_per_frame and len(pts) > max_points_per_frame:
+            pts = pts[:: int(np.ceil(len(pts) / max_points_per_frame))]
+        d = np.linalg.norm(g.apply(te, pts) - g.apply(tg, pts), axis=1)
+        total += float(d.sum())
+        count += len(d)
+    return total / max(count, 1)
+
+
+def rpe(est_poses: np.ndarray, gt_poses: np.ndarray, *, delta: int = 1) -> dict[str, float]:
+    """Relative pose error over ``delta`` frames: translation RMSE and mean rotation error (deg)."""
+    rel_e = g.relative(est_poses[:-delta], est_poses[delta:])
+    rel_g = g.relative(gt_poses[:-delta], gt_poses[delta:])
+    err = g.relative(rel_g, rel_e)
+    trans = np.linalg.norm(g.translation(err), axis=-1)
+    rot = np.degrees(g.rotation_angle(err))
+    return {"rpe_trans": float(np.sqrt((trans**2).mean())), "rpe_rot_deg": float(rot.mean())}
+
+
+def pose_errors(est_poses: np.ndarray, gt_poses: np.ndarray) -> dict[str, float]:
+    """Per-frame rotation and translation errors after the rigid alignment of `ate`.
+
+    Returns the mean and max rotation error in degrees and translation error in the unit,
+    after the rigid alignment used by `ate`.
+    """
+    err = g.relative(gt_poses, aligned(est_poses, gt_poses))
+    rot = np.degrees(g.rotation_angle(err))
+    trans = np.linalg.norm(g.translation(aligned(est_poses, gt_poses)) - g.translation(gt_poses), axis=-1)
+    return {
+        "rot_err_mean_deg": float(rot.mean()),
+        "rot_err_max_deg": float(rot.max()),
+        "trans_err_mean": float(trans.mean()),
+        "trans_err_max": float(trans.max()),
+    }
+
+
+def evaluate(frames: Seq[np.ndarray], est_poses: np.ndarray, gt_poses: np.ndarray) -> dict[str, float]:
+    """All metrics of an estimate against ground truth, as a flat dict."""
+    out = {"ate": ate(est_poses, gt_poses), "point_l2": point_l2(frames, est_poses, gt_poses)}
+    out.update(rpe(est_poses, gt_poses))
+    out.update(pose_errors(est_poses, gt_poses))
+    return out
