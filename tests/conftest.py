@@ -1,0 +1,27 @@
+"""Shared fixtures: the real data in ../shared/data and small sequences."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED_DATA = Path(os.environ.get("STREP_SHARED_DATA", ROOT.parent / "shared" / "data"))
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """The folder of real sequences (``../shared/data`` beside the repository)."""
+    if not SHARED_DATA.is_dir():
+        pytest.fail(f"shared data not found at {SHARED_DATA}; set STREP_SHARED_DATA")
+    return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def v1_pose0(shared_data: Path):
+    """DeepMapping's v1_pose0: 256 frames x 256 points, map pixels, with ground truth."""
+    from strep_core.io.deepmapping import read_deepmapping
+
+    return read_deepmapping(shared_data / "deepmapping_2d" / "v1_pose0.tar")
