@@ -267,12 +267,15 @@ def so3_log(rot: Array) -> Array:
     )
     sin_t = xp.sin(theta)
     small = theta < _SMALL
-    near_pi = theta > np.pi - 1e-3
+    near_pi = theta > np.pi - 1e-2
     safe_sin = _where(small | near_pi, xp.ones_like(sin_t), sin_t)
     factor = _where(small, 0.5 + theta * theta / 12.0, theta / (2.0 * safe_sin))
     w = factor[..., None] * vee
-    # Near pi: R ~ 2 n n^T - I, so (R + I)/2 = n n^T; take the best-conditioned column.
-    nn = (rot + _eye(3, rot[..., 0])) / 2.0
+    # Near pi: the symmetric part is cos(t) I + (1 - cos(t)) n n^T, exact for any angle;
+    # take n from its best-conditioned column and the sign from the antisymmetric part.
+    sym = (rot + _swap(rot)) / 2.0
+    one_minus_cos = _clip(1.0 - cos_t, 1e-12, 2.0)
+    nn = (sym - cos_t[..., None, None] * _eye(3, rot[..., 0])) / one_minus_cos[..., None, None]
     diag = _stack([nn[..., 0, 0], nn[..., 1, 1], nn[..., 2, 2]], -1)
     idx = diag.argmax(-1)
     if _is_torch(rot):

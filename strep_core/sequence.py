@@ -129,9 +129,7 @@ class Sequence:
                 raise SequenceError(f"frame {i} has shape {f.shape}; expected (N, 2) or (N, 3)")
             dims.add(f.shape[1])
             if len(f) < MIN_POINTS:
-                raise SequenceError(
-                    f"frame {i} has {len(f)} points; at least {MIN_POINTS} are needed"
-                )
+                raise SequenceError(f"frame {i} has {len(f)} points; at least {MIN_POINTS} are needed")
             if not np.isfinite(f).all():
                 raise SequenceError(f"frame {i} contains non-finite values (NaN or inf)")
         if len(dims) > 1:
@@ -151,27 +149,22 @@ class Sequence:
             if value is None:
                 continue
             if value.ndim != 3 or value.shape[1:] != (d + 1, d + 1):
-                raise SequenceError(
-                    f"{attr} have shape {value.shape}; expected ({k}, {d + 1}, {d + 1})"
-                )
+                raise SequenceError(f"{attr} have shape {value.shape}; expected ({k}, {d + 1}, {d + 1})")
             if len(value) != k:
                 raise SequenceError(f"{len(value)} {attr.replace('_', ' ')} for {k} frames")
             if not np.isfinite(value).all():
                 raise SequenceError(f"{attr.replace('_', ' ')} contain non-finite values")
-        if self.colors is not None:
-            if len(self.colors) != k or any(
-                len(c) != len(f) for c, f in zip(self.colors, self.frames, strict=True)
-            ):
-                raise SequenceError("colors must give one (N_i, 3) array per frame")
+        if self.colors is not None and (
+            len(self.colors) != k or any(len(c) != len(f) for c, f in zip(self.colors, self.frames, strict=True))
+        ):
+            raise SequenceError("colors must give one (N_i, 3) array per frame")
 
     def select(self, selection: str | FrameSelection | slice | None) -> Sequence:
         """A new sequence with the selected frames; original indices are kept."""
         sel = FrameSelection.parse(selection)
         idx = sel.indices(len(self))
         if len(idx) < 2:
-            raise SequenceError(
-                f"frame selection {sel} keeps {len(idx)} of {len(self)} frames; at least 2 are needed"
-            )
+            raise SequenceError(f"frame selection {sel} keeps {len(idx)} of {len(self)} frames; at least 2 are needed")
         assert self.origins is not None and self.indices is not None
         return replace(
             self,

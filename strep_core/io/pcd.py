@@ -10,8 +10,16 @@ import numpy as np
 
 from strep_core.errors import FormatError
 
-_TYPES = {("F", 4): "<f4", ("F", 8): "<f8", ("I", 1): "<i1", ("I", 2): "<i2", ("I", 4): "<i4",
-          ("U", 1): "<u1", ("U", 2): "<u2", ("U", 4): "<u4"}
+_TYPES = {
+    ("F", 4): "<f4",
+    ("F", 8): "<f8",
+    ("I", 1): "<i1",
+    ("I", 2): "<i2",
+    ("I", 4): "<i4",
+    ("U", 1): "<u1",
+    ("U", 2): "<u2",
+    ("U", 4): "<u4",
+}
 
 
 def parse_pcd(data: bytes, *, name: str = "<pcd>") -> np.ndarray:
@@ -62,8 +70,10 @@ def parse_pcd(data: bytes, *, name: str = "<pcd>") -> np.ndarray:
         raise FormatError(f"{name}: PCD DATA {mode!r} is not supported (ascii or binary only)")
     try:
         dtype = np.dtype(
-            [(f, _TYPES[(t.upper(), s)], (c,)) if c > 1 else (f, _TYPES[(t.upper(), s)])
-             for f, s, t, c in zip(fields, sizes, types, counts, strict=True)]
+            [
+                (f, _TYPES[(t.upper(), s)], (c,)) if c > 1 else (f, _TYPES[(t.upper(), s)])
+                for f, s, t, c in zip(fields, sizes, types, counts, strict=True)
+            ]
         )
     except KeyError as exc:
         raise FormatError(f"{name}: unsupported PCD field type {exc}") from exc
