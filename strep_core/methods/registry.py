@@ -102,11 +102,10 @@ def _load_builtin() -> None:
     # Importing the modules registers their methods; heavy imports stay inside functions.
     from strep_core.methods import classical  # noqa: F401
 
-    try:
+    import importlib.util
+
+    if importlib.util.find_spec("strep_core.methods.learned") is not None:  # TEMP until it lands
         from strep_core.methods import learned  # noqa: F401
-    except ImportError as exc:  # pragma: no cover - only while the learned methods are absent
-        if "strep_core.methods.learned" not in str(exc):
-            raise
 
 
 def available() -> dict[str, MethodInfo]:

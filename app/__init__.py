@@ -1,0 +1,1 @@
+"""STREP Studio's web service (FastAPI, job store, executors, viewers). Built on `strep_core`."""

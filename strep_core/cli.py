@@ -1,0 +1,259 @@
+"""The ``strep`` command line. Thin: it parses options, calls the library, prints results.
+
+Library code raises typed errors (`strep_core.errors`); here they become a one-line message
+on stderr and a non-zero exit code, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence as Seq
+from pathlib import Path
+from typing import Any
+
+from strep_core.errors import StrepError
+
+EXIT_ERROR = 2
+EXIT_INTERRUPTED = 130
+
+
+def _set_dotted(data: dict[str, Any], key: str, value: Any) -> None:
+    parts = key.split(".")
+    node = data
+    for p in parts[:-1]:
+        node = node.setdefault(p, {})
+        if not isinstance(node, dict):
+            raise StrepError(f"--set {key}: {p} is not a section")
+    node[parts[-1]] = value
+
+
+def _parse_value(text: str) -> Any:
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
+
+
+def build_config(args: argparse.Namespace) -> Any:
+    """RunConfig from ``--config FILE``, then the named options, then ``--set key=value``."""
+    from strep_core.config import RunConfig
+
+    base: dict[str, Any] = RunConfig.load(args.config).model_dump() if args.config else {}
+    named = {
+        "method": args.method,
+        "seed": args.seed,
+        "frames": args.frames,
+        "init": args.init,
+        "device": args.device,
+        "threads": args.threads,
+        "from_model": str(args.from_model) if args.from_model else None,
+    }
+    base.update({k: v for k, v in named.items() if v is not None})
+    if args.freeze:
+        base["freeze"] = True
+    if args.iterations is not None:
+        _set_dotted(base, "optim.iterations", args.iterations)
+    for item in args.set or []:
+        if "=" not in item:
+            raise StrepError(f"--set {item!r}: expected KEY=VALUE, e.g. optim.iterations=200")
+        key, value = item.split("=", 1)
+        _set_dotted(base, key.strip(), _parse_value(value))
+    if base.get("freeze") and not base.get("from_model"):
+        raise StrepError("--freeze needs --from-model FILE")
+    return RunConfig.build(**base)
+
+
+class _ProgressSink:
+    """Shows a tqdm bar from the run's events (to stderr)."""
+
+    def __init__(self, enabled: bool) -> None:
+        self.enabled = enabled
+        self.bar: Any = None
+
+    def emit(self, event: Any) -> None:
+        if not self.enabled:
+            return
+        from tqdm import tqdm
+
+        if event.kind == "start":
+            self.close()
+            self.bar = tqdm(total=event.total_iterations, desc=event.method, unit="it", leave=False)
+        elif event.kind == "iteration" and self.bar is not None:
+            self.bar.n = event.iteration
+            post = {k: f"{v:.4g}" for k, v in event.losses.items() if k == "total"}
+            if event.ate is not None:
+                post["ate"] = f"{event.ate:.3g}"
+            self.bar.set_postfix(post, refresh=False)
+            self.bar.refresh()
+        elif event.kind == "stage" and self.bar is None:
+            print(f"  {event.stage} ...", file=sys.stderr)
+        elif event.kind == "result":
+            self.close()
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+
+def _fmt(value: Any, unit: str = "") -> str:
+    if value is None:
+        return "n/a"
+    if isinstance(value, float):
+        return f"{value:.3f}{unit}"
+    return f"{value}{unit}"
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from strep_core.pipeline import run_input
+
+    config = build_config(args)
+    out_dir = Path(args.out)
+    sink = _ProgressSink(enabled=not args.quiet and sys.stderr.isatty() or args.progress)
+    try:
+        result = run_input(args.input, config, out_dir=out_dir, sink=sink)
+    finally:
+        sink.close()
+    m = result.metrics
+    unit = f" {m['unit']}"
+    print(
+        f"{m['method']} on {m['sequence']}: {m['frames']} frames, ATE {_fmt(m['ate'], unit)}, "
+        f"point L2 {_fmt(m['point_l2'], unit)}, {m['wall_seconds']:.1f} s "
+        f"(init: {m['initial_guess']}, ATE {_fmt(m.get('initial_ate'), unit)}) -> {out_dir}"
+    )
+    return 0
+
+
+def cmd_generate(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    if args.kind == "2d":
+        from strep_core.sim.lidar2d import simulate_2d, write_deepmapping
+
+        seq = simulate_2d(args.seed, frames=args.frames or 256, noise=args.noise)
+    else:
+        from strep_core.sim.depth3d import simulate_3d
+
+        seq = simulate_3d(args.seed, frames=args.frames or 16, noise=args.noise)
+    if args.format == "deepmapping":
+        if seq.dim != 2:
+            raise StrepError("--format deepmapping is a 2D format; use npz for 3D")
+        write_deepmapping(seq, out)
+        target = out
+    else:
+        from strep_core.io.npz import write_npz
+
+        out.mkdir(parents=True, exist_ok=True)
+        target = out / f"{seq.name}.npz"
+        write_npz(seq, target)
+    print(f"wrote {seq.name}: {len(seq)} frames, {seq.num_points} points ({seq.unit}) -> {target}")
+    return 0
+
+
+def cmd_samples(args: argparse.Namespace) -> int:
+    from strep_core.samples import list_samples
+
+    for s in list_samples():
+        print(f"sample:{s.name:<14} {s.dims}D {s.frames:>4} frames {s.points:>7} points  {s.description}")
+    return 0
+
+
+def cmd_methods(args: argparse.Namespace) -> int:
+    from strep_core.methods import available
+
+    for name, info in available().items():
+        kind = "learned" if info.learned else "classical"
+        print(f"{name:<14} {kind:<10} {info.description}")
+    return 0
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    from strep_core.pipeline import load_input
+
+    seq = load_input(args.input, frames=args.frames)
+    print(json.dumps({**seq.summary(), "scale": round(seq.scale(), 6)}, indent=2))
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from strep_core.bench import main as bench_main
+
+    return bench_main(args)
+
+
+def make_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="strep",
+        description="Unsupervised global registration of temporal sequences of 2D/3D point clouds (STREP).",
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    run = sub.add_parser("run", help="register a sequence and write trajectory, map and metrics")
+    run.add_argument("input", help="a file or folder in a supported format, or sample:NAME")
+    run.add_argument("--method", "-m", help="registration method (see `strep methods`); default strep")
+    run.add_argument("--out", "-o", default="runs/latest", help="output folder (default runs/latest)")
+    run.add_argument("--frames", help="frame selection start:stop[:step]")
+    run.add_argument("--seed", type=int)
+    run.add_argument("--iterations", type=int, help="optimiser iterations (learned methods)")
+    run.add_argument(
+        "--init",
+        choices=["auto", "identity", "odometry", "ground_truth", "icp", "multiway", "kiss"],
+        help="initial guess (auto: odometry if present else identity; learned methods add an ICP warm start)",
+    )
+    run.add_argument("--device", choices=["cpu", "cuda", "auto"])
+    run.add_argument("--threads", type=int, help="CPU threads for torch (default: all cores)")
+    run.add_argument("--config", type=Path, help="a config.json to start from")
+    run.add_argument("--set", action="append", metavar="KEY=VALUE", help="any config field, e.g. loss.window=3")
+    run.add_argument("--from-model", type=Path, help="a model.pt saved by an earlier learned run")
+    run.add_argument("--freeze", action="store_true", help="with --from-model: re-optimise only the latents")
+    run.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
+    run.add_argument("--progress", action="store_true", help="progress bar even when stderr is not a terminal")
+    run.set_defaults(fn=cmd_run)
+
+    gen = sub.add_parser("generate", help="simulate a sequence (2D lidar or 3D depth)")
+    gen.add_argument("kind", choices=["2d", "3d"])
+    gen.add_argument("--out", "-o", required=True)
+    gen.add_argument("--seed", type=int, default=0)
+    gen.add_argument("--frames", type=int)
+    gen.add_argument("--noise", type=float, default=0.0, help="range/depth noise (sequence unit)")
+    gen.add_argument("--format", choices=["npz", "deepmapping"], default="npz")
+    gen.set_defaults(fn=cmd_generate)
+
+    sub.add_parser("samples", help="list the bundled sample sequences").set_defaults(fn=cmd_samples)
+    sub.add_parser("methods", help="list the registration methods").set_defaults(fn=cmd_methods)
+
+    info = sub.add_parser("info", help="describe a sequence")
+    info.add_argument("input")
+    info.add_argument("--frames")
+    info.set_defaults(fn=cmd_info)
+
+    bench = sub.add_parser("bench", help="benchmark every method on the standard sequences")
+    bench.add_argument("--quick", action="store_true", help="a few minutes: fewer sequences and iterations")
+    bench.add_argument("--out", "-o", default="bench_out", help="folder for the JSON and the table")
+    bench.add_argument("--methods", help="comma-separated subset of methods")
+    bench.add_argument("--suites", help="comma-separated subset of suites")
+    bench.add_argument("--data", type=Path, help="folder of the shared real data (default ../shared/data)")
+    bench.add_argument("--docs", type=Path, help="also write the table into this markdown file")
+    bench.set_defaults(fn=cmd_bench)
+    return parser
+
+
+def main(argv: Seq[str] | None = None) -> int:
+    parser = make_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.fn(args) or 0)
+    except StrepError as exc:
+        print(f"strep: error: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    except KeyboardInterrupt:
+        print("strep: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except OSError as exc:
+        print(f"strep: error: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "), file=sys.stderr)
+        return EXIT_ERROR
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
