@@ -111,7 +111,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     config = build_config(args)
     out_dir = Path(args.out)
-    sink = _ProgressSink(enabled=not args.quiet and sys.stderr.isatty() or args.progress)
+    sink = _ProgressSink(enabled=(not args.quiet and sys.stderr.isatty()) or args.progress)
     try:
         result = run_input(args.input, config, out_dir=out_dir, sink=sink)
     finally:

@@ -26,21 +26,74 @@ class _Section(BaseModel):
 
 
 class ClassicalConfig(_Section):
-    """Settings of the classical baselines (`icp`, `multiway`, `kiss`)."""
+    """Settings of the classical baselines (`icp`, `multiway`, `kiss`).
 
+    Lengths left at ``None`` are derived from the data as ``fraction * Sequence.scale()``
+    (the median point range), so one set of defaults serves pixels and metres; see
+    `strep_core.registration` and `strep_core.methods.classical` for the rules.
+    """
+
+    # ---- ICP (icp, multiway's edges)
     max_correspondence: float | None = Field(
         default=None, gt=0, description="ICP correspondence distance (sequence unit); None: from data"
     )
+    correspondence_fraction: float = Field(
+        default=0.16, gt=0, le=10, description="correspondence distance = this * scale when not given"
+    )
+    icp_scales: list[float] = Field(
+        default=[1.0],
+        min_length=1,
+        description="coarse-to-fine ICP stages, multipliers of the correspondence distance",
+    )
+    icp_iterations: int = Field(default=50, ge=1, le=1000, description="ICP iterations per stage")
+    local_map_frames: int = Field(
+        default=1, ge=1, le=50, description="icp: register each frame to the union of this many previous ones"
+    )
     voxel: float | None = Field(
-        default=None, gt=0, description="voxel size for downsampling (sequence unit); None: from data"
+        default=None, ge=0, description="voxel size for downsampling (sequence unit; 0: none); None: from data"
     )
-    icp_iterations: int = Field(default=50, ge=1, le=1000)
+    voxel_fraction: float = Field(default=0.01, ge=0, le=1, description="voxel = this * scale when not given")
+    normal_neighbours: int = Field(default=6, ge=2, le=100, description="2D normals: PCA neighbourhood size")
+    normal_radius: float | None = Field(
+        default=None, gt=0, description="3D normals: search radius (sequence unit); None: from data"
+    )
+    normal_radius_factor: float = Field(
+        default=2.0, gt=0, le=100, description="3D normal radius = this * voxel when not given"
+    )
+    normal_max_nn: int = Field(default=30, ge=3, le=1000, description="3D normals: at most this many neighbours")
+    # ---- multiway pose graph
     loop_radius: float | None = Field(
-        default=None, gt=0, description="multiway: loop-closure search radius; None: from data"
+        default=None, gt=0, description="multiway: loop-closure search radius (sequence unit); None: from data"
     )
-    loop_min_fitness: float = Field(default=0.6, ge=0, le=1)
+    loop_radius_fraction: float = Field(
+        default=0.8, gt=0, le=100, description="loop radius = this * scale when not given"
+    )
+    loop_min_gap: int = Field(
+        default=2, ge=2, le=10_000, description="loop closures only between frames at least this far apart"
+    )
+    loop_min_fitness: float = Field(default=0.6, ge=0, le=1, description="keep a loop edge above this ICP fitness")
     loop_max_candidates: int = Field(default=8, ge=0, le=100, description="loop edges tried per frame")
-    kiss_voxel: float | None = Field(default=None, gt=0, description="KISS-ICP voxel size; None: from data")
+    edge_prune_threshold: float = Field(
+        default=0.25, ge=0, le=1, description="pose graph: line-process weight below which a loop edge is pruned"
+    )
+    # ---- KISS-ICP
+    kiss_voxel: float | None = Field(
+        default=None, gt=0, description="KISS-ICP voxel size (sequence unit); None: from data"
+    )
+    kiss_voxel_fraction: float = Field(
+        default=0.128, gt=0, le=10, description="KISS voxel = this * scale when not given"
+    )
+    kiss_max_points_per_voxel: int = Field(default=20, ge=1, le=1000)
+    kiss_prior: Literal["auto", "velocity", "init"] = Field(
+        default="auto",
+        description="KISS motion prediction: its constant-velocity model, the initial guess's relative "
+        "motion, or auto (the guess when it moves, else constant velocity)",
+    )
+    # ---- all
+    event_interval: int = Field(default=10, ge=1, description="emit an iteration event every N frames")
+    threads: int = Field(
+        default=1, ge=1, le=256, description="CPU threads for Open3D and KISS-ICP (1: bit-for-bit repeatable)"
+    )
 
 
 # ---- learned methods (strep, strep-nolink, deepmapping) ------------------------------------

@@ -100,9 +100,9 @@ def register(
 
 def _load_builtin() -> None:
     # Importing the modules registers their methods; heavy imports stay inside functions.
-    from strep_core.methods import classical  # noqa: F401
-
     import importlib.util
+
+    from strep_core.methods import classical  # noqa: F401
 
     if importlib.util.find_spec("strep_core.methods.learned") is not None:  # TEMP until it lands
         from strep_core.methods import learned  # noqa: F401
