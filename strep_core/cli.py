@@ -182,6 +182,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return bench_main(args)
 
 
+def cmd_serve(args: argparse.Namespace) -> int:
+    from app.server import serve
+
+    return serve(host=args.host, port=args.port, data_dir=args.data_dir)
+
+
 def make_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="strep",
@@ -236,6 +242,12 @@ def make_parser() -> argparse.ArgumentParser:
     bench.add_argument("--data", type=Path, help="folder of the shared real data (default ../shared/data)")
     bench.add_argument("--docs", type=Path, help="also write the table into this markdown file")
     bench.set_defaults(fn=cmd_bench)
+
+    serve = sub.add_parser("serve", help="start the web service (REST API, live events, web page)")
+    serve.add_argument("--host", help="bind address (default 127.0.0.1; others need STREP_API_TOKEN)")
+    serve.add_argument("--port", type=int, help="HTTP port (default 8000)")
+    serve.add_argument("--data-dir", type=Path, help="jobs, uploads and results (default ./strep-data)")
+    serve.set_defaults(fn=cmd_serve)
     return parser
 
 
