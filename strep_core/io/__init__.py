@@ -1,5 +1,254 @@
-"""Readers and writers. `load_sequence` picks a reader from the path."""
+"""Readers and writers. `load_sequence` picks a reader from the path.
 
+* ``*.npz`` -> `read_npz`
+* ``*.tar``, or a folder of ``NNN.pcd`` + ``gt_pose.mat`` -> `read_deepmapping`
+* ``*.log``, ``*.log.gz`` -> `read_carmen`
+* ``*.conf``, or a folder holding one -> `read_conf`
+* a folder of ``*.depth.png`` or ``depth/*.png`` -> `read_depth_folder`
+* a folder of ``*.ply`` / ``*.pcd`` -> `read_folder`
+* ``*.zip`` of any of the above -> extracted safely (`extract_zip`), then dispatched
+
+`FORMATS` describes them for documentation and the CLI. Open3D is imported only by the
+readers that need it (``folder``, ``conf``); ``sample:NAME`` sources are resolved by
+`strep_core.samples` before `load_sequence` is called.
+"""
+
+from __future__ import annotations
+
+import inspect
+import stat
+import tempfile
+import zipfile
+from collections.abc import Callable
+from pathlib import Path, PurePosixPath
+from typing import Any, NamedTuple
+
+from strep_core.errors import ConfigError, FormatError
+from strep_core.io.carmen import read_carmen
 from strep_core.io.deepmapping import read_deepmapping
+from strep_core.io.depth import read_depth_folder, read_intrinsics
+from strep_core.io.folder import read_conf, read_folder
+from strep_core.io.npz import read_npz, write_npz
+from strep_core.io.poses import read_kitti, read_poses, read_tum
+from strep_core.io.writers import write_json, write_ply, write_tum
+from strep_core.sequence import FrameSelection, Sequence
 
-__all__ = ["read_deepmapping"]
+__all__ = [
+    "DEFAULT_MAX_EXTRACT_BYTES",
+    "FORMATS",
+    "FormatInfo",
+    "detect_format",
+    "extract_zip",
+    "load_sequence",
+    "read_carmen",
+    "read_conf",
+    "read_deepmapping",
+    "read_depth_folder",
+    "read_folder",
+    "read_intrinsics",
+    "read_kitti",
+    "read_npz",
+    "read_poses",
+    "read_tum",
+    "write_json",
+    "write_npz",
+    "write_ply",
+    "write_tum",
+]
+
+DEFAULT_MAX_EXTRACT_BYTES = 2 * 1024**3  # 2 GiB: the most a .zip may inflate to
+
+
+class FormatInfo(NamedTuple):
+    """One input format, for documentation, the CLI and the web page."""
+
+    name: str
+    extensions: tuple[str, ...]
+    description: str
+
+
+FORMATS: tuple[FormatInfo, ...] = (
+    FormatInfo("npz", (".npz",), "numpy archive: points + counts (or frames), optional poses, unit"),
+    FormatInfo(
+        "deepmapping",
+        (".tar",),
+        "DeepMapping 2D: NNN.pcd frames + gt_pose.mat, in a .tar or a folder (map pixels)",
+    ),
+    FormatInfo("carmen", (".log", ".log.gz"), "CARMEN laser log: FLASER scans, corrected poses (metres)"),
+    FormatInfo("conf", (".conf",), "Stanford range scans: PLY files + a .conf of bmesh poses"),
+    FormatInfo(
+        "depth",
+        (".depth.png", ".png"),
+        "folder of 16-bit depth PNGs (7-Scenes or TUM RGB-D layout) + intrinsics, optional poses",
+    ),
+    FormatInfo("folder", (".ply", ".pcd"), "folder of PLY/PCD frames, optional TUM or KITTI pose file"),
+    FormatInfo("zip", (".zip",), "a .zip holding any of the formats above"),
+)
+
+_READERS: dict[str, Callable[..., Sequence]] = {
+    "npz": read_npz,
+    "deepmapping": read_deepmapping,
+    "carmen": read_carmen,
+    "conf": read_conf,
+    "depth": read_depth_folder,
+    "folder": read_folder,
+}
+
+
+def _expected() -> str:
+    return ", ".join(f"{f.name} ({' '.join(f.extensions)})" for f in FORMATS)
+
+
+def _is_deepmapping_folder(folder: Path) -> bool:
+    if not (folder / "gt_pose.mat").is_file():
+        return False
+    return any(p.stem.isdigit() for p in folder.glob("*.pcd"))
+
+
+def detect_format(source: str | Path) -> str:
+    """Name of the format of ``source`` (a key of `FORMATS`), from its name and content.
+
+    Raises:
+        FormatError: missing input, or a format none of the readers knows.
+    """
+    path = Path(source)
+    name = path.name.lower()
+    if not path.exists():
+        raise FormatError(f"{path}: no such file or folder; expected one of {_expected()}")
+    if path.is_file():
+        for suffix, fmt in (
+            (".npz", "npz"),
+            (".tar", "deepmapping"),
+            (".log", "carmen"),
+            (".log.gz", "carmen"),
+            (".conf", "conf"),
+            (".zip", "zip"),
+        ):
+            if name.endswith(suffix):
+                return fmt
+    elif path.is_dir():
+        if _is_deepmapping_folder(path):
+            return "deepmapping"
+        if any(path.glob("*.conf")):
+            return "conf"
+        if any(path.glob("*.depth.png")) or any((path / "depth").glob("*.png")):
+            return "depth"
+        if any(p.suffix.lower() in (".ply", ".pcd") for p in path.iterdir()):
+            return "folder"
+    raise FormatError(f"{path}: unknown format; expected one of {_expected()}")
+
+
+def _check_member(info: zipfile.ZipInfo, archive: Path) -> PurePosixPath:
+    name = info.filename.replace("\\", "/")
+    rel = PurePosixPath(name)
+    if name.startswith("/") or (len(name) > 1 and name[1] == ":") or ".." in rel.parts:
+        raise FormatError(f"{archive}: unsafe entry {info.filename!r} (absolute or '..' path)")
+    mode = info.external_attr >> 16
+    if stat.S_ISLNK(mode):
+        raise FormatError(f"{archive}: entry {info.filename!r} is a symbolic link")
+    return rel
+
+
+def extract_zip(archive: str | Path, dest: str | Path, *, max_bytes: int = DEFAULT_MAX_EXTRACT_BYTES) -> Path:
+    """Extract ``archive`` into the folder ``dest`` safely.
+
+    Entries with absolute paths, ``..`` components or symbolic links are refused, and the
+    extraction stops once more than ``max_bytes`` bytes have been written (whatever sizes
+    the archive declares). Returns ``dest``.
+
+    Raises:
+        FormatError: not a zip file, an unsafe entry, or too much data.
+    """
+    archive, dest = Path(archive), Path(dest)
+    try:
+        zf = zipfile.ZipFile(archive)
+    except (zipfile.BadZipFile, OSError) as exc:
+        raise FormatError(f"{archive}: not a readable zip archive ({exc})") from exc
+    with zf:
+        infos = zf.infolist()
+        members = [(info, _check_member(info, archive)) for info in infos]
+        declared = sum(info.file_size for info in infos)
+        if declared > max_bytes:
+            raise FormatError(f"{archive}: inflates to {declared} bytes, over the limit of {max_bytes}")
+        written = 0
+        for info, rel in members:
+            target = dest.joinpath(*rel.parts)
+            if info.is_dir():
+                target.mkdir(parents=True, exist_ok=True)
+                continue
+            target.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                with zf.open(info) as src, open(target, "wb") as out:
+                    while chunk := src.read(1 << 20):
+                        written += len(chunk)
+                        if written > max_bytes:
+                            raise FormatError(f"{archive}: inflates to more than the limit of {max_bytes} bytes")
+                        out.write(chunk)
+            except (zipfile.BadZipFile, OSError, EOFError, NotImplementedError) as exc:
+                raise FormatError(f"{archive}: cannot extract {info.filename!r} ({exc})") from exc
+    return dest
+
+
+def _content_root(folder: Path) -> Path:
+    """What an extracted archive holds: descend through single wrapping folders down to a
+    folder with several entries, or to a single file."""
+    while True:
+        entries = [p for p in folder.iterdir() if p.name not in ("__MACOSX", ".DS_Store")]
+        if len(entries) != 1:
+            return folder
+        if entries[0].is_file():
+            return entries[0]
+        folder = entries[0]
+
+
+def load_sequence(
+    source: str | Path,
+    *,
+    frames: str | FrameSelection | None = None,
+    max_extract_bytes: int = DEFAULT_MAX_EXTRACT_BYTES,
+    **options: Any,
+) -> Sequence:
+    """Read a sequence from any supported input (see `FORMATS`), dispatching on the path.
+
+    Args:
+        source: a file or folder; a ``.zip`` is extracted to a temporary folder (removed
+            afterwards) and its content dispatched in turn.
+        frames: ``start:stop[:step]``; original indices are kept in ``Sequence.indices``.
+        max_extract_bytes: the most a ``.zip`` may inflate to (default 2 GiB).
+        **options: passed to the reader (e.g. ``max_range`` for CARMEN, ``stride`` for depth).
+
+    Raises:
+        FormatError: missing input, unknown format, or a malformed file.
+        ConfigError: an option the format's reader does not take.
+        SequenceError: the content is not a valid sequence (NaN, too few frames or points).
+    """
+    path = Path(source)
+    fmt = detect_format(path)
+    if fmt == "zip":
+        with tempfile.TemporaryDirectory(prefix="strep-zip-") as tmp:
+            extract_zip(path, tmp, max_bytes=max_extract_bytes)
+            inner = _content_root(Path(tmp))
+            if inner.is_file() and inner.name.lower().endswith(".zip"):
+                raise FormatError(f"{path}: a zip inside a zip is not supported")
+            try:
+                inner_fmt = detect_format(inner)
+            except FormatError as exc:
+                raise FormatError(
+                    f"{path}: the archive's content has an unknown format; expected one of {_expected()}"
+                ) from exc
+            seq = _read(inner_fmt, inner, frames, options)
+            seq.meta = {**seq.meta, "source": str(path), "archive_member": str(inner.relative_to(tmp))}
+            return seq
+    return _read(fmt, path, frames, options)
+
+
+def _read(fmt: str, path: Path, frames: str | FrameSelection | None, options: dict[str, Any]) -> Sequence:
+    reader = _READERS[fmt]
+    accepted = set(inspect.signature(reader).parameters) - {"path", "frames"}
+    unknown = sorted(set(options) - accepted)
+    if unknown:
+        raise ConfigError(
+            f"{path}: option(s) {', '.join(unknown)} do not apply to the {fmt} format "
+            f"(it takes: {', '.join(sorted(accepted)) or 'none'})"
+        )
+    return reader(path, frames=frames, **options)

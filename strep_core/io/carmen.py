@@ -1,0 +1,152 @@
+"""CARMEN laser logs (``.log`` or ``.log.gz``), as used by the classic 2D SLAM data sets.
+
+Only ``FLASER`` lines are read::
+
+    FLASER n r_0 ... r_{n-1} x y theta odom_x odom_y odom_theta timestamp host logger_timestamp
+
+* ``r_i`` are ranges in metres; the ``n`` beams span 180 degrees around the heading, beam
+  ``i`` at angle ``-pi/2 + i * pi / (n - 1)`` (radians, counter-clockwise, 0 = ahead).
+* ``x y theta`` is the laser pose corrected by a SLAM system: the ground truth here.
+* ``odom_x odom_y odom_theta`` is the raw odometry: the initial guess (``initial_poses``).
+  "Corrected" logs such as intel and aces overwrite it with the corrected pose on every
+  line; then it is no guess at all but the ground truth, and ``initial_poses`` is ``None``
+  (``meta["odometry"]`` says so).
+
+Invalid ranges (no return) are dropped: ``r <= 0``, non-finite, and ``r >= limit`` where
+``limit`` is ``max_range`` when given; otherwise ``limit = min(80 m, sentinel)``, with
+``sentinel`` the log's largest reading when that exact value repeats in at least 0.1 % of all
+readings (a saturated "no return" code, e.g. 81.83 in intel, 50.00 in aces: real ranges vary
+continuously and do not pile up on one value).
+"""
+
+from __future__ import annotations
+
+import gzip
+import zlib
+from pathlib import Path
+
+import numpy as np
+
+from strep_core import geometry as g
+from strep_core.errors import FormatError, SequenceError
+from strep_core.sequence import FrameSelection, Sequence
+
+__all__ = ["DEFAULT_MAX_RANGE", "SENTINEL_SHARE", "read_carmen"]
+
+DEFAULT_MAX_RANGE = 80.0  # metres: SICK LMS maximum; readings at or beyond mean no return
+SENTINEL_SHARE = 1e-3  # a log maximum repeated in >= this share of readings is a no-return code
+
+
+def _open_text(path: Path) -> list[str]:
+    try:
+        raw = path.read_bytes()
+        if raw[:2] == b"\x1f\x8b":
+            raw = gzip.decompress(raw)
+        return raw.decode("utf-8").splitlines()
+    except (OSError, EOFError, zlib.error) as exc:
+        raise FormatError(f"{path}: cannot read CARMEN log ({exc})") from exc
+    except UnicodeDecodeError as exc:
+        raise FormatError(f"{path}: not a text CARMEN log ({exc.reason} at byte {exc.start})") from exc
+
+
+def _parse_flaser(tokens: list[str], where: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Ranges ``(n,)``, laser pose ``(3,)`` and odometry ``(3,)`` of one FLASER line."""
+    try:
+        n = int(tokens[1])
+    except (IndexError, ValueError) as exc:
+        raise FormatError(f"{where}: FLASER line without a beam count") from exc
+    if n < 2:
+        raise FormatError(f"{where}: FLASER line with {n} beams; at least 2 are needed")
+    need = 2 + n + 6
+    if len(tokens) < need:
+        raise FormatError(
+            f"{where}: FLASER line has {len(tokens) - 2} numbers after the count {n}; "
+            f"expected at least {n + 6} ({n} ranges, laser x y theta, odometry x y theta)"
+        )
+    try:
+        vals = np.array(tokens[2:need], dtype=np.float64)
+    except ValueError as exc:
+        raise FormatError(f"{where}: FLASER line holds a value that is not a number ({exc})") from exc
+    return vals[:n], vals[n : n + 3], vals[n + 3 : n + 6]
+
+
+def read_carmen(
+    path: str | Path,
+    *,
+    frames: str | FrameSelection | None = None,
+    max_range: float | None = None,
+) -> Sequence:
+    """Read the ``FLASER`` scans of a CARMEN log as a 2D sequence in metres.
+
+    Args:
+        path: a ``.log`` file, gzipped or not.
+        frames: ``start:stop[:step]`` over the scans; original indices are kept.
+        max_range: ranges at or beyond this (metres) are dropped; default: see the module
+            docstring (80 m, or the log's repeated maximum when smaller).
+
+    Returns:
+        A `Sequence` with ``K`` frames ``(N_i, 2)`` in the laser frame (metres), ``poses``
+        ``(K, 3, 3)`` from the corrected laser poses and ``initial_poses`` from odometry
+        (``None`` when the odometry equals the corrected poses on every line).
+
+    Raises:
+        FormatError: unreadable file, no FLASER line, a malformed FLASER line.
+        SequenceError: a selected scan keeps fewer than 3 valid ranges, or non-finite poses.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FormatError(f"{path}: no such CARMEN log")
+    scans = []
+    for lineno, line in enumerate(_open_text(path), 1):
+        tokens = line.split()
+        if tokens and tokens[0] == "FLASER":
+            scans.append(_parse_flaser(tokens, f"{path}:{lineno}"))
+    if not scans:
+        raise FormatError(f"{path}: no FLASER lines (not a CARMEN laser log?)")
+
+    all_ranges = np.concatenate([s[0] for s in scans])
+    if max_range is not None:
+        limit, rule = float(max_range), "max_range"
+    else:
+        limit, rule = DEFAULT_MAX_RANGE, "default"
+        finite = all_ranges[np.isfinite(all_ranges)]
+        if finite.size:
+            top = float(finite.max())
+            if np.count_nonzero(finite == top) >= max(2, SENTINEL_SHARE * finite.size) and top < limit:
+                limit, rule = top, "sentinel"
+
+    sel = FrameSelection.parse(frames).indices(len(scans))
+    pts, gt, odom = [], [], []
+    for i in sel:
+        r, pose, od = scans[i]
+        angles = -np.pi / 2 + np.arange(len(r)) * (np.pi / (len(r) - 1))
+        ok = np.isfinite(r) & (r > 0) & (r < limit)
+        pts.append(np.stack([r[ok] * np.cos(angles[ok]), r[ok] * np.sin(angles[ok])], 1))
+        gt.append(pose)
+        odom.append(od)
+    gt_poses = g.se2_from_xytheta(np.asarray(gt).reshape(-1, 3))
+    odom_poses: np.ndarray | None = g.se2_from_xytheta(np.asarray(odom).reshape(-1, 3))
+    # "Corrected" logs (intel, aces...) overwrite odometry with the corrected pose: an
+    # initial guess equal to the ground truth would make every benchmark meaningless.
+    odometry_is_corrected = all(np.array_equal(s[1], s[2]) for s in scans)
+    if odometry_is_corrected:
+        odom_poses = None
+    try:
+        return Sequence(
+            frames=pts,
+            name=path.name.removesuffix(".gz").removesuffix(".log"),
+            unit="m",
+            poses=gt_poses,
+            initial_poses=odom_poses,
+            indices=sel,
+            meta={
+                "source": str(path),
+                "format": "carmen",
+                "max_range": limit,
+                "max_range_rule": rule,
+                "beams": len(scans[0][0]),
+                "odometry": "equal to the corrected poses; not used" if odometry_is_corrected else "raw",
+            },
+        )
+    except SequenceError as exc:
+        raise SequenceError(f"{path}: {exc}") from exc
