@@ -468,7 +468,7 @@ def test_read_tum_dim_2_refuses_non_planar_poses(tmp_path: Path) -> None:
 
 
 def test_write_ply_reads_back_with_open3d(tmp_path: Path) -> None:
-    import open3d as o3d
+    from strep_core._open3d import o3d
 
     rng = np.random.default_rng(5)
     pts = rng.normal(size=(500, 3)) * 10

@@ -60,7 +60,7 @@ def read_point_cloud(path: Path) -> Cloud:
     Raises:
         FormatError: Open3D cannot read the file or finds no points in it.
     """
-    import open3d as o3d  # heavy: imported only where it is needed
+    from strep_core._open3d import o3d
 
     if not path.is_file():
         raise FormatError(f"{path}: no such point-cloud file")
@@ -260,7 +260,7 @@ def read_conf(
         cloud = read_point_cloud(conf.parent / scans[i][0])
         xyz = cloud.points
         if voxel is not None:
-            import open3d as o3d
+            from strep_core._open3d import o3d
 
             pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
             xyz = np.asarray(pc.voxel_down_sample(voxel).points, dtype=np.float64)
