@@ -41,13 +41,19 @@ class ClassicalConfig(_Section):
         default=0.16, gt=0, le=10, description="correspondence distance = this * scale when not given"
     )
     icp_scales: list[float] = Field(
-        default=[1.0],
+        default=[2.0, 1.0, 0.5],
         min_length=1,
         description="coarse-to-fine ICP stages, multipliers of the correspondence distance",
     )
     icp_iterations: int = Field(default=50, ge=1, le=1000, description="ICP iterations per stage")
+    icp_min_fitness: float = Field(
+        default=0.1, ge=0, le=1, description="discard an ICP stage matching fewer source points than this"
+    )
+    icp_kernel: float | None = Field(
+        default=None, gt=0, le=10, description="Tukey kernel width, fraction of the stage's distance; None: L2"
+    )
     local_map_frames: int = Field(
-        default=1, ge=1, le=50, description="icp: register each frame to the union of this many previous ones"
+        default=5, ge=1, le=50, description="icp: register each frame to the union of this many previous ones"
     )
     voxel: float | None = Field(
         default=None, ge=0, description="voxel size for downsampling (sequence unit; 0: none); None: from data"
@@ -58,7 +64,7 @@ class ClassicalConfig(_Section):
         default=None, gt=0, description="3D normals: search radius (sequence unit); None: from data"
     )
     normal_radius_factor: float = Field(
-        default=2.0, gt=0, le=100, description="3D normal radius = this * voxel when not given"
+        default=2.0, gt=0, le=100, description="3D normal radius = this * max(voxel, point spacing) when not given"
     )
     normal_max_nn: int = Field(default=30, ge=3, le=1000, description="3D normals: at most this many neighbours")
     # ---- multiway pose graph
@@ -73,6 +79,11 @@ class ClassicalConfig(_Section):
     )
     loop_min_fitness: float = Field(default=0.6, ge=0, le=1, description="keep a loop edge above this ICP fitness")
     loop_max_candidates: int = Field(default=8, ge=0, le=100, description="loop edges tried per frame")
+    loop_scales: list[float] | None = Field(
+        default=None,
+        min_length=1,
+        description="ICP stages of loop-closure edges; None: icp_scales without its coarsest stage",
+    )
     edge_prune_threshold: float = Field(
         default=0.25, ge=0, le=1, description="pose graph: line-process weight below which a loop edge is pruned"
     )
@@ -80,10 +91,22 @@ class ClassicalConfig(_Section):
     kiss_voxel: float | None = Field(
         default=None, gt=0, description="KISS-ICP voxel size (sequence unit); None: from data"
     )
-    kiss_voxel_fraction: float = Field(
-        default=0.128, gt=0, le=10, description="KISS voxel = this * scale when not given"
+    kiss_voxel_spacing: float = Field(
+        default=6.5, gt=0, le=1000, description="KISS voxel = this * median point spacing when not given"
     )
-    kiss_max_points_per_voxel: int = Field(default=20, ge=1, le=1000)
+    kiss_reference_scale: float = Field(
+        default=10.0,
+        gt=0,
+        description="KISS runs on points rescaled so that the data's scale equals this many units "
+        "(its robust kernel is not unit-free; 10: a LiDAR's median range in metres, as KISS is tuned)",
+    )
+    kiss_max_points_per_voxel: int = Field(default=20, ge=1, le=1000, description="KISS map points per voxel")
+    kiss_initial_threshold: float = Field(
+        default=2.0, gt=0, le=100, description="KISS adaptive threshold before motion is seen, in voxels"
+    )
+    kiss_min_motion: float = Field(
+        default=0.1, ge=0, le=100, description="KISS: motions below this many voxels do not update the threshold"
+    )
     kiss_prior: Literal["auto", "velocity", "init"] = Field(
         default="auto",
         description="KISS motion prediction: its constant-velocity model, the initial guess's relative "

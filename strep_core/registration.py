@@ -1,0 +1,484 @@
+"""Pairwise and incremental rigid registration with Open3D, shared by the classical baselines
+and by the learned methods' warm starts.
+
+Conventions (see `strep_core.geometry`): poses are homogeneous ``(D+1, D+1)`` matrices,
+local -> world; lengths are in the sequence's unit (pixels or metres).
+
+* A pairwise result ``T`` maps *source* coordinates into *target* coordinates:
+  ``p_target = T p_source``. With world poses ``P_s, P_t``: ``T = P_t^-1 P_s``
+  (``geometry.relative(P_t, P_s)``).
+* 2D frames are registered in 3D as ``z = 0`` points with in-plane normals (`normals_2d`);
+  every 3D estimate is projected back onto SE(2) (`project_planar`), so 2D results are
+  exactly SE(2).
+* Open3D's *legacy* pipeline (`o3d.pipelines.registration`) is used: its tensor API is about
+  30x slower on CPU. Open3D is imported inside functions (it is heavy).
+
+Data-derived lengths (`resolve_params`), with ``s = Sequence.scale()`` (median point range):
+
+* correspondence distance ``d = correspondence_fraction * s`` (default 0.16 s: 20 px on
+  DeepMapping's v1_pose0, where s = 125 px; 10 px diverges there); ICP runs coarse to fine
+  over ``icp_scales * d``;
+* voxel ``v = voxel_fraction * s`` (default 0.01 s: 1.2 px, 2 cm on a 2 m CARMEN scan,
+  1.5 to 2 cm on indoor RGB-D);
+* 3D normal radius ``normal_radius_factor * max(v, h)``, ``h`` the median spacing of
+  neighbouring points (`point_spacing`), so that sparse clouds still find neighbours;
+  2D normals from the ``normal_neighbours`` nearest neighbours in the plane.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from strep_core import geometry as g
+from strep_core.config import ClassicalConfig
+from strep_core.errors import RegistrationError
+from strep_core.sequence import Sequence
+
+if TYPE_CHECKING:  # pragma: no cover
+    from strep_core._open3d import o3d
+
+
+@dataclass(frozen=True)
+class RegistrationParams:
+    """Absolute registration settings for one sequence; build them with `resolve_params`.
+
+    Attributes:
+        dim: spatial dimension D of the frames (2 or 3).
+        max_correspondence: finest ICP correspondence distance (sequence unit).
+        scales: coarse-to-fine multipliers of ``max_correspondence``, one ICP stage each.
+        iterations: ICP iterations per stage.
+        min_fitness: ICP stages matching fewer source points than this fraction are discarded.
+        kernel: Tukey kernel width as a fraction of each stage's distance; ``None``: plain L2.
+        voxel: voxel size for downsampling (sequence unit); ``None``: keep every point.
+        normal_neighbours: 2D normals: neighbours of the in-plane PCA (the point included).
+        normal_radius: 3D normals: search radius (sequence unit).
+        normal_max_nn: 3D normals: at most this many neighbours within the radius.
+        local_map: incremental ICP registers frame k to the union of this many previous frames.
+        threads: CPU threads Open3D may use (1 makes runs bit-for-bit repeatable).
+    """
+
+    dim: int
+    max_correspondence: float
+    scales: tuple[float, ...] = (1.0,)
+    iterations: int = 50
+    min_fitness: float = 0.0
+    kernel: float | None = None
+    voxel: float | None = None
+    normal_neighbours: int = 6
+    normal_radius: float = 1.0
+    normal_max_nn: int = 30
+    local_map: int = 1
+    threads: int = 1
+
+    @property
+    def planar(self) -> bool:
+        return self.dim == 2
+
+
+def resolve_params(seq: Sequence, cfg: ClassicalConfig) -> RegistrationParams:
+    """Turn a `ClassicalConfig` into absolute lengths for ``seq`` (rules in the module doc)."""
+    s = seq.scale()
+    voxel = cfg.voxel if cfg.voxel is not None else cfg.voxel_fraction * s
+    normal_radius = cfg.normal_radius if cfg.normal_radius is not None else 1.0
+    if cfg.normal_radius is None and seq.dim == 3:  # 2D normals use neighbour counts, not a radius
+        normal_radius = cfg.normal_radius_factor * max(voxel, point_spacing(seq))
+    return RegistrationParams(
+        dim=seq.dim,
+        max_correspondence=(
+            cfg.max_correspondence if cfg.max_correspondence is not None else cfg.correspondence_fraction * s
+        ),
+        scales=tuple(cfg.icp_scales),
+        iterations=cfg.icp_iterations,
+        min_fitness=cfg.icp_min_fitness,
+        kernel=cfg.icp_kernel,
+        voxel=voxel if voxel > 0 else None,
+        normal_neighbours=cfg.normal_neighbours,
+        normal_radius=normal_radius,
+        normal_max_nn=cfg.normal_max_nn,
+        local_map=cfg.local_map_frames,
+        threads=cfg.threads,
+    )
+
+
+@dataclass(frozen=True)
+class PairResult:
+    """One pairwise registration.
+
+    Attributes:
+        transformation: ``(4, 4)`` source -> target in the 3D embedding (``z = 0`` in 2D,
+            then exactly SE(2) embedded: yaw and x, y only).
+        fitness: fraction of source points with a correspondence within the final distance.
+        inlier_rmse: RMSE of those correspondences (sequence unit).
+    """
+
+    transformation: np.ndarray
+    fitness: float
+    inlier_rmse: float
+
+
+@dataclass
+class IncrementalResult:
+    """Output of `incremental_icp`.
+
+    Attributes:
+        poses: ``(K, D+1, D+1)`` local -> world poses, ``poses[0]`` = the initial guess's.
+        pairs: ``K-1`` results; ``pairs[k-1]`` registers frame k to frame k-1 (or to its map).
+        clouds: the prepared Open3D clouds (downsampled, with normals), for reuse.
+        seconds: time spent in registration.
+    """
+
+    poses: np.ndarray
+    pairs: list[PairResult]
+    clouds: list[Any] = field(default_factory=list)
+    seconds: float = 0.0
+
+
+# --------------------------------------------------------------------------------------------
+# Small helpers
+
+
+def point_spacing(seq: Sequence, *, max_frames: int = 4) -> float:
+    """Median distance from a point to its nearest neighbour in the same frame (sequence unit).
+
+    Measured on up to ``max_frames`` evenly spaced frames; the density of the data, where
+    `Sequence.scale` is its extent (sparse 2D scan lines: about 0.02 of the scale; dense
+    depth images subsampled 4x: about 0.007).
+    """
+    from scipy.spatial import cKDTree
+
+    step = max(1, len(seq) // max(1, max_frames))
+    d = np.concatenate([cKDTree(f).query(f, k=2)[0][:, 1] for f in seq.frames[::step][:max_frames]])
+    d = d[d > 0]
+    return float(np.median(d)) if len(d) else seq.scale() * 1e-3
+
+
+@contextlib.contextmanager
+def open3d_quiet(threads: int | None = None) -> Iterator[Any]:
+    """Import Open3D, silence its log and bound its threads (then restore them); yields the module."""
+    from strep_core._open3d import o3d
+
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        if threads is None:
+            yield o3d
+            return
+        previous = o3d.utility.get_max_threads()
+        o3d.utility.set_max_threads(int(threads))
+        try:
+            yield o3d
+        finally:
+            o3d.utility.set_max_threads(previous)
+
+
+def project_planar(transform: np.ndarray) -> np.ndarray:
+    """Nearest planar motion of 3D transforms ``(..., 4, 4)``: keep yaw and x, y; z = 0.
+
+    Returns ``(..., 4, 4)`` SE(2) poses embedded in SE(3) (rotation about z only).
+    """
+    transform = np.asarray(transform, dtype=np.float64)
+    yaw = np.arctan2(transform[..., 1, 0] - transform[..., 0, 1], transform[..., 0, 0] + transform[..., 1, 1])
+    out = np.zeros_like(transform)
+    c, s = np.cos(yaw), np.sin(yaw)
+    out[..., 0, 0], out[..., 0, 1], out[..., 1, 0], out[..., 1, 1] = c, -s, s, c
+    out[..., 0, 3], out[..., 1, 3] = transform[..., 0, 3], transform[..., 1, 3]
+    out[..., 2, 2] = out[..., 3, 3] = 1.0
+    return out
+
+
+def from_se3(transform: np.ndarray, dim: int) -> np.ndarray:
+    """``(..., 4, 4)`` -> poses of dimension ``dim``: ``(..., 3, 3)`` SE(2) (projected) or as is."""
+    if dim == 3:
+        return np.asarray(transform, dtype=np.float64)
+    planar = project_planar(transform)
+    out = np.zeros((*planar.shape[:-2], 3, 3))
+    out[..., :2, :2] = planar[..., :2, :2]
+    out[..., :2, 2] = planar[..., :2, 3]
+    out[..., 2, 2] = 1.0
+    return out
+
+
+def normals_2d(points: np.ndarray, *, neighbours: int = 6, origin: np.ndarray | None = None) -> np.ndarray:
+    """Unit normals of 2D points from a PCA of each point's nearest neighbours.
+
+    The normal is the eigenvector of the smallest eigenvalue of the neighbourhood covariance.
+
+    Args:
+        points: ``(N, 2)`` points.
+        neighbours: neighbourhood size, the point itself included (at least 2; capped at N).
+        origin: ``(2,)`` sensor position; normals are flipped to face it (``None``: the origin).
+
+    Returns:
+        ``(N, 2)`` unit normals.
+    """
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 2:
+        raise RegistrationError(f"normals_2d needs (N, 2) points, got {points.shape}")
+    k = min(max(int(neighbours), 2), len(points))
+    if k < 2:
+        raise RegistrationError("normals_2d needs at least 2 points")
+    _, idx = cKDTree(points).query(points, k=k)
+    nb = points[idx]  # (N, k, 2)
+    centred = nb - nb.mean(axis=1, keepdims=True)
+    cov = np.einsum("nki,nkj->nij", centred, centred)
+    _, vecs = np.linalg.eigh(cov)  # ascending eigenvalues
+    normals = vecs[:, :, 0]
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    view = (np.zeros(2) if origin is None else np.asarray(origin, dtype=np.float64)) - points
+    flip = np.einsum("ni,ni->n", normals, view) < 0
+    normals[flip] *= -1.0
+    return normals
+
+
+def make_cloud(points: np.ndarray, normals: np.ndarray | None = None) -> o3d.geometry.PointCloud:
+    """An Open3D point cloud from ``(N, 2|3)`` points (2D embedded at ``z = 0``) and normals."""
+    from strep_core._open3d import o3d
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(g.pad_points(np.asarray(points, np.float64))))
+    if normals is not None:
+        cloud.normals = o3d.utility.Vector3dVector(g.pad_points(np.asarray(normals, np.float64)))
+    return cloud
+
+
+def prepare_frame(
+    points: np.ndarray, params: RegistrationParams, *, origin: np.ndarray | None = None
+) -> o3d.geometry.PointCloud:
+    """Downsample one frame and give it normals, ready for point-to-plane ICP.
+
+    Args:
+        points: ``(N, D)`` points in the frame's local coordinates.
+        params: resolved settings (voxel, normal neighbourhood).
+        origin: ``(D,)`` sensor position in the same coordinates; normals face it.
+
+    Returns:
+        An Open3D cloud in 3D (``z = 0`` for 2D frames) with unit normals.
+    """
+    from strep_core._open3d import o3d
+
+    points = np.asarray(points, dtype=np.float64)
+    dim = points.shape[1]
+    origin = np.zeros(dim) if origin is None else np.asarray(origin, dtype=np.float64)
+    cloud = make_cloud(points)
+    if params.voxel is not None:
+        cloud = cloud.voxel_down_sample(params.voxel)
+    if len(cloud.points) < 3:
+        raise RegistrationError(f"a frame keeps {len(cloud.points)} points after downsampling; need 3")
+    if dim == 2:
+        pts2 = np.asarray(cloud.points)[:, :2]
+        cloud.normals = o3d.utility.Vector3dVector(
+            g.pad_points(normals_2d(pts2, neighbours=params.normal_neighbours, origin=origin))
+        )
+    else:
+        cloud.estimate_normals(
+            o3d.geometry.KDTreeSearchParamHybrid(radius=params.normal_radius, max_nn=params.normal_max_nn)
+        )
+        cloud.orient_normals_towards_camera_location(origin)
+    return cloud
+
+
+# --------------------------------------------------------------------------------------------
+# Pairwise registration
+
+
+def register_clouds(
+    source: o3d.geometry.PointCloud,
+    target: o3d.geometry.PointCloud,
+    init: np.ndarray,
+    *,
+    max_correspondence: float,
+    scales: tuple[float, ...] = (1.0,),
+    iterations: int = 50,
+    planar: bool = False,
+    min_fitness: float = 0.0,
+    kernel: float | None = None,
+) -> PairResult:
+    """Point-to-plane ICP of prepared clouds (``target`` needs normals), coarse to fine.
+
+    Args:
+        source, target: Open3D clouds (see `prepare_frame`).
+        init: ``(4, 4)`` initial source -> target transform.
+        max_correspondence: finest correspondence distance (sequence unit).
+        scales: one ICP stage per multiplier of ``max_correspondence``, in the given order.
+        iterations: maximum ICP iterations per stage.
+        planar: project every stage's result onto SE(2) (2D frames at ``z = 0``).
+        min_fitness: a stage whose result matches fewer than this fraction of the source
+            points (or none) is discarded with the stages after it: the transform stays where
+            the previous stage left it (the initial guess if it is the first). This stops the
+            rare runaway of point-to-plane ICP on a few degenerate correspondences.
+        kernel: Tukey robust-kernel width as a fraction of each stage's distance (``None``: L2).
+    """
+    from strep_core._open3d import o3d
+
+    reg = o3d.pipelines.registration
+    criteria = reg.ICPConvergenceCriteria(relative_fitness=1e-7, relative_rmse=1e-7, max_iteration=int(iterations))
+    if not scales:
+        raise RegistrationError("register_clouds needs at least one scale")
+    current = project_planar(init) if planar else np.asarray(init, dtype=np.float64)
+    fitness, rmse = 0.0, 0.0
+    for scale in scales:
+        distance = max_correspondence * scale
+        estimation = (
+            reg.TransformationEstimationPointToPlane()
+            if kernel is None
+            else reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=kernel * distance))
+        )
+        result = reg.registration_icp(source, target, distance, current, estimation, criteria)
+        if result.fitness <= 0.0 or result.fitness < min_fitness:
+            break
+        current = np.asarray(result.transformation)
+        if planar:
+            current = project_planar(current)
+        fitness, rmse = float(result.fitness), float(result.inlier_rmse)
+    return PairResult(transformation=current, fitness=fitness, inlier_rmse=rmse)
+
+
+def register_pair(
+    source: np.ndarray,
+    target: np.ndarray,
+    init: np.ndarray | None,
+    params: RegistrationParams,
+    *,
+    source_origin: np.ndarray | None = None,
+    target_origin: np.ndarray | None = None,
+) -> tuple[np.ndarray, PairResult]:
+    """Register two frames given as point arrays, in the frames' own dimension.
+
+    Args:
+        source, target: ``(N, D)`` and ``(M, D)`` points, each in its local coordinates.
+        init: ``(D+1, D+1)`` initial source -> target transform (``None``: identity).
+        params: resolved settings (`resolve_params`, or built by hand).
+        source_origin, target_origin: ``(D,)`` sensor positions (normals face them).
+
+    Returns:
+        ``(D+1, D+1)`` source -> target transform (exactly SE(2) in 2D) and the `PairResult`.
+    """
+    dim = np.asarray(source).shape[1]
+    init4 = np.eye(4) if init is None else g.to_se3(init)
+    with open3d_quiet(params.threads):
+        src = prepare_frame(source, params, origin=source_origin)
+        tgt = prepare_frame(target, params, origin=target_origin)
+        res = register_clouds(
+            src,
+            tgt,
+            init4,
+            max_correspondence=params.max_correspondence,
+            scales=params.scales,
+            iterations=params.iterations,
+            planar=dim == 2,
+            min_fitness=params.min_fitness,
+            kernel=params.kernel,
+        )
+    return from_se3(res.transformation, dim), res
+
+
+def information_matrix(
+    source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, transform: np.ndarray, distance: float
+) -> np.ndarray:
+    """``(6, 6)`` information matrix of a source -> target ``(4, 4)`` alignment (Open3D's)."""
+    from strep_core._open3d import o3d
+
+    return np.asarray(
+        o3d.pipelines.registration.get_information_matrix_from_point_clouds(source, target, distance, transform)
+    )
+
+
+def transform_cloud(cloud: o3d.geometry.PointCloud, transform: np.ndarray) -> o3d.geometry.PointCloud:
+    """A transformed copy of a cloud (points and normals) by a ``(4, 4)`` transform."""
+    from strep_core._open3d import o3d
+
+    out = o3d.geometry.PointCloud(cloud)
+    out.transform(np.asarray(transform, dtype=np.float64))
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Incremental ICP
+
+
+def prepare_frames(seq: Sequence, params: RegistrationParams) -> list[o3d.geometry.PointCloud]:
+    """`prepare_frame` for every frame of ``seq`` (uses the sequence's sensor origins)."""
+    assert seq.origins is not None
+    return [prepare_frame(f, params, origin=o) for f, o in zip(seq.frames, seq.origins, strict=True)]
+
+
+def incremental_icp(
+    seq: Sequence,
+    init_poses: np.ndarray,
+    params: RegistrationParams,
+    *,
+    on_frame: Callable[[int, np.ndarray], None] | None = None,
+    clouds: list[Any] | None = None,
+) -> IncrementalResult:
+    """Frame-to-frame (or frame-to-local-map) point-to-plane ICP along a sequence.
+
+    Frame k is registered to frame k-1 (to the union of the ``params.local_map`` previous
+    frames, placed by their current estimates, when it is above 1), starting from the initial
+    guess's relative motion ``init_poses[k-1]^-1 init_poses[k]``; ``poses[0] = init_poses[0]``.
+
+    Args:
+        seq: K frames of dimension D.
+        init_poses: ``(K, D+1, D+1)`` initial guess (identity or odometry), local -> world.
+        params: resolved settings.
+        on_frame: called as ``on_frame(k, poses)`` after frame k is placed (``poses`` is the
+            ``(K, D+1, D+1)`` working array; frames after k are not yet set); may raise, e.g.
+            `strep_core.errors.Cancelled`, to stop.
+        clouds: prepared clouds to reuse (`prepare_frames`); made here when ``None``.
+
+    Returns:
+        `IncrementalResult` with ``(K, D+1, D+1)`` poses (exactly SE(2) in 2D).
+    """
+    k_frames = len(seq)
+    init_poses = np.asarray(init_poses, dtype=np.float64)
+    if init_poses.shape != (k_frames, seq.dim + 1, seq.dim + 1):
+        raise RegistrationError(f"init poses have shape {init_poses.shape} for {k_frames} frames of {seq.dim}D")
+    started = time.perf_counter()
+    with open3d_quiet(params.threads):
+        if clouds is None:
+            clouds = prepare_frames(seq, params)
+        init3 = g.to_se3(init_poses)
+        poses3 = np.empty((k_frames, 4, 4))
+        poses3[0] = project_planar(init3[0]) if params.planar else init3[0]
+        pairs: list[PairResult] = []
+        for k in range(1, k_frames):
+            guess = g.relative(init3[k - 1], init3[k])
+            target = clouds[k - 1]
+            if params.local_map > 1:
+                target = _local_map(clouds, poses3, k, params)
+            res = register_clouds(
+                clouds[k],
+                target,
+                guess,
+                max_correspondence=params.max_correspondence,
+                scales=params.scales,
+                iterations=params.iterations,
+                planar=params.planar,
+                min_fitness=params.min_fitness,
+                kernel=params.kernel,
+            )
+            pairs.append(res)
+            poses3[k] = poses3[k - 1] @ res.transformation
+            if params.planar:
+                poses3[k] = project_planar(poses3[k])
+            if on_frame is not None:
+                on_frame(k, from_se3(poses3, seq.dim))
+    poses = from_se3(poses3, seq.dim)
+    return IncrementalResult(poses=poses, pairs=pairs, clouds=clouds, seconds=time.perf_counter() - started)
+
+
+def _local_map(clouds: list[Any], poses3: np.ndarray, k: int, params: RegistrationParams) -> o3d.geometry.PointCloud:
+    """Union of frames ``k-M .. k-1`` in frame k-1's coordinates (normals moved along)."""
+    from strep_core._open3d import o3d
+
+    ref = g.inverse(poses3[k - 1])
+    merged = o3d.geometry.PointCloud()
+    for j in range(max(0, k - params.local_map), k):
+        merged += transform_cloud(clouds[j], ref @ poses3[j])
+    if params.voxel is not None and not params.planar:
+        merged = merged.voxel_down_sample(params.voxel)
+    return merged
