@@ -1,0 +1,19 @@
+"""All API routes under ``/api``, behind the bearer-token check."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends
+
+from app.api.deps import require_token
+from app.api.routes import comparisons, health, jobs, sequences
+from app.models import ErrorPublic
+
+api_router = APIRouter(
+    prefix="/api",
+    dependencies=[Depends(require_token)],
+    responses={401: {"model": ErrorPublic, "description": "missing or invalid bearer token (when a token is set)"}},
+)
+api_router.include_router(health.router)
+api_router.include_router(sequences.router)
+api_router.include_router(jobs.router)
+api_router.include_router(comparisons.router)

@@ -1,0 +1,136 @@
+"""The service's settings: one `BaseSettings` read from ``STREP_*`` environment variables.
+
+These are settings of the *service* (where data lives, how many jobs run at once, limits,
+security). The settings of a *run* are `strep_core.config.RunConfig`, the body of a job.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+import os
+from functools import lru_cache
+from pathlib import Path
+from typing import Annotated, Any
+
+from pydantic import Field, SecretStr, field_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+MiB = 1024**2
+GiB = 1024**3
+
+LOOPBACK_NAMES = {"localhost", "localhost.localdomain", "ip6-localhost"}
+
+
+def is_loopback(host: str) -> bool:
+    """True when ``host`` only accepts connections from this machine (127.0.0.0/8, ::1, localhost)."""
+    if host.lower() in LOOPBACK_NAMES:
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def _split_list(value: Any) -> Any:
+    """Accept a JSON list or a comma-separated string for list settings given in the environment."""
+    if isinstance(value, str):
+        text = value.strip()
+        if not text:
+            return []
+        if text.startswith("["):
+            return json.loads(text)
+        return [part.strip() for part in text.split(",") if part.strip()]
+    return value
+
+
+class Settings(BaseSettings):
+    """Settings of the STREP Studio service (environment prefix ``STREP_``)."""
+
+    model_config = SettingsConfigDict(env_prefix="STREP_", extra="ignore", validate_default=True)
+
+    data_dir: Path = Field(default=Path("strep-data"), description="SQLite store, uploads and job results")
+    host: str = Field(default="127.0.0.1", description="bind address; a non-loopback one needs api_token")
+    port: int = Field(default=8000, ge=0, le=65535, description="HTTP port")
+    max_concurrent_jobs: int = Field(default=2, ge=1, le=256, description="jobs optimising at once; more queue")
+    max_upload_bytes: int = Field(default=512 * MiB, ge=1, description="largest accepted upload (bytes)")
+    max_inflated_bytes: int = Field(default=2 * GiB, ge=1, description="most a .zip upload may inflate to (bytes)")
+    api_token: SecretStr | None = Field(
+        default=None, description="bearer token required on every /api call when set (mandatory off loopback)"
+    )
+    cors_origins: Annotated[list[str], NoDecode] = Field(
+        default_factory=list, description="origins allowed by CORS (comma-separated or JSON); none by default"
+    )
+    viewer_port: int = Field(default=8080, ge=0, le=65535, description="reserved for the 3D viewer")
+    cancel_grace_seconds: float = Field(
+        default=5.0, gt=0, le=600, description="after a cancel, a worker still running this long is terminated"
+    )
+    worker_threads: int | None = Field(
+        default=None,
+        ge=1,
+        le=256,
+        description="CPU threads per job when its config leaves `threads` unset; None: cores / max_concurrent_jobs",
+    )
+    worker_nice: int = Field(
+        default=10,
+        ge=0,
+        le=19,
+        description="niceness added to worker processes, so the API stays responsive while jobs optimise",
+    )
+    read_timeout_seconds: float = Field(
+        default=300.0, gt=0, description="longest time reading an upload may take before it is refused"
+    )
+    plugins: Annotated[list[str], NoDecode] = Field(
+        default_factory=list,
+        description="modules imported by the service and by every worker, e.g. to register extra methods",
+    )
+
+    @field_validator("cors_origins", "plugins", mode="before")
+    @classmethod
+    def _lists(cls, value: Any) -> Any:
+        return _split_list(value)
+
+    @field_validator("api_token", mode="before")
+    @classmethod
+    def _empty_token_is_none(cls, value: Any) -> Any:
+        return None if isinstance(value, str) and not value.strip() else value
+
+    @property
+    def db_path(self) -> Path:
+        return self.data_dir / "strep.db"
+
+    @property
+    def uploads_dir(self) -> Path:
+        return self.data_dir / "uploads"
+
+    @property
+    def results_dir(self) -> Path:
+        return self.data_dir / "results"
+
+    @property
+    def logs_dir(self) -> Path:
+        return self.data_dir / "logs"
+
+    def threads_per_job(self) -> int:
+        """Torch/Open3D threads for a job whose config does not say: the cores shared by the job slots."""
+        if self.worker_threads is not None:
+            return self.worker_threads
+        return max(1, (os.cpu_count() or 1) // self.max_concurrent_jobs)
+
+    def check_secure(self) -> None:
+        """Raise `InsecureSettings` when bound off loopback without a token."""
+        if not is_loopback(self.host) and self.api_token is None:
+            raise InsecureSettings(
+                f"refusing to listen on {self.host}: set STREP_API_TOKEN to serve beyond this machine "
+                "(clients then send 'Authorization: Bearer <token>')"
+            )
+
+
+class InsecureSettings(RuntimeError):
+    """The settings would expose the service without authentication."""
+
+
+@lru_cache
+def get_settings() -> Settings:
+    """The settings from the environment (cached)."""
+    return Settings()

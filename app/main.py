@@ -1,0 +1,100 @@
+"""The FastAPI application: ``create_app(settings)``.
+
+Run it with ``strep serve`` (see `app.server`), or ``uvicorn --factory app.main:create_app``.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Any
+
+from fastapi import FastAPI
+from fastapi.concurrency import run_in_threadpool
+from fastapi.middleware.cors import CORSMiddleware
+
+import strep_core
+from app.api.main import api_router
+from app.core.config import Settings, get_settings
+from app.core.errors import install_error_handlers
+from app.services import Service
+
+log = logging.getLogger("strep.service")
+
+DESCRIPTION = """Unsupervised global registration of temporal sequences of 2D/3D point clouds.
+
+Upload a sequence, queue jobs (one method each) or comparisons (several methods, side by side),
+follow them live with Server-Sent Events and download their trajectory, map and metrics.
+Errors are `{"detail": "..."}`. See docs/api.md.
+"""
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """The application. Its lifespan opens the service (store, workers) and closes it."""
+    settings = settings or get_settings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        service = await run_in_threadpool(_open_service, settings)
+        app.state.service = service
+        try:
+            yield
+        finally:
+            app.state.service = None
+            await run_in_threadpool(service.close)
+
+    app = FastAPI(
+        title="STREP Studio",
+        version=strep_core.__version__,
+        description=DESCRIPTION,
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.service = None
+    install_error_handlers(app)
+    if settings.cors_origins:
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=settings.cors_origins,
+            allow_methods=["GET", "POST", "DELETE"],
+            allow_headers=["Authorization", "Content-Type", "Last-Event-ID"],
+        )
+    app.include_router(api_router)
+    _document_errors(app)
+    return app
+
+
+def _open_service(settings: Settings) -> Service:
+    service = Service(settings)
+    try:
+        service.start()
+    except BaseException:
+        service.close()
+        raise
+    return service
+
+
+def _document_errors(app: FastAPI) -> None:
+    """Describe 422 answers as they are: ``{"detail": str, "errors": [...]}``."""
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            from fastapi.openapi.utils import get_openapi
+
+            schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
+            schemas = schema.setdefault("components", {}).setdefault("schemas", {})
+            schemas["HTTPValidationError"] = {
+                "title": "HTTPValidationError",
+                "type": "object",
+                "required": ["detail"],
+                "properties": {
+                    "detail": {"type": "string", "title": "Detail"},
+                    "errors": {"type": "array", "items": {"type": "object"}, "title": "Errors"},
+                },
+            }
+            schemas.pop("ValidationError", None)
+            app.openapi_schema = schema
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]

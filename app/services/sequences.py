@@ -1,0 +1,298 @@
+"""Sequences: uploads (validated by reading them in a separate process) and bundled samples."""
+
+from __future__ import annotations
+
+import importlib.util
+import logging
+import multiprocessing
+import multiprocessing.connection
+import re
+import secrets
+import shutil
+import signal
+import threading
+import zipfile
+from multiprocessing.context import SpawnContext, SpawnProcess
+from pathlib import Path
+from typing import Any
+
+from app.core.config import Settings
+from app.services.uploads import ReceivedUpload
+from app.services.worker import reader_loop
+from app.store import Store, now_iso
+from strep_core import errors as core_errors
+from strep_core.errors import ConfigError, FormatError, SequenceError, StrepError
+from strep_core.sequence import FrameSelection
+
+log = logging.getLogger("strep.service")
+
+SAMPLE_PREFIX = "sample:"
+_EXTRACTED = re.compile(r"[^\s'\"]*strep-zip-[^/\s]+/")  # the temporary folder a .zip is extracted into
+
+
+def new_id(prefix: str) -> str:
+    return f"{prefix}_{secrets.token_hex(8)}"
+
+
+def describe_exit(code: int | None) -> str:
+    """Why a process ended, in words: ``killed by signal SIGKILL`` or ``exited with code 1``."""
+    if code is None:
+        return "is still running"
+    if code < 0:
+        try:
+            name = signal.Signals(-code).name
+        except ValueError:
+            name = str(-code)
+        return f"was killed by signal {name}"
+    return f"exited with code {code}"
+
+
+class ReaderProcess:
+    """A long-lived child process that reads uploads (one at a time) to validate them.
+
+    A reader that crashes, hangs past the timeout or runs out of memory ends only this
+    process; it is started again for the next upload.
+    """
+
+    def __init__(self, ctx: SpawnContext, *, plugins: list[str], timeout: float, nice: int = 0) -> None:
+        self.ctx = ctx
+        self.plugins = plugins
+        self.nice = nice
+        self.timeout = timeout
+        self._lock = threading.Lock()
+        self._proc: SpawnProcess | None = None
+        self._conn: multiprocessing.connection.Connection | None = None
+
+    def _ensure(self) -> multiprocessing.connection.Connection:
+        if self._proc is not None and self._proc.is_alive() and self._conn is not None:
+            return self._conn
+        self._stop()
+        parent, child = self.ctx.Pipe()
+        proc = self.ctx.Process(
+            target=reader_loop, args=(child, self.plugins, self.nice), name="strep-reader", daemon=True
+        )
+        proc.start()
+        child.close()
+        self._proc, self._conn = proc, parent
+        return parent
+
+    def _stop(self) -> int | None:
+        code = None
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+        if self._proc is not None:
+            self._proc.join(timeout=2)
+            if self._proc.is_alive():
+                self._proc.kill()
+                self._proc.join(timeout=5)
+            code = self._proc.exitcode
+            self._proc = None
+        return code
+
+    def read(self, path: Path, selection: str | None, max_extract_bytes: int) -> dict[str, Any]:
+        """Read ``path`` as a sequence; returns its summary or raises the reader's `StrepError`."""
+        with self._lock:
+            conn = self._ensure()
+            conn.send((str(path), selection, max_extract_bytes))
+            if not conn.poll(self.timeout):
+                assert self._proc is not None
+                self._proc.kill()
+                self._stop()
+                raise FormatError(f"reading the file took longer than {self.timeout:g} s; it was refused")
+            try:
+                reply = conn.recv()
+            except (EOFError, OSError):
+                code = self._stop()
+                raise FormatError(f"the file could not be read: the reader process {describe_exit(code)}") from None
+        if reply[0] == "ok":
+            return dict(reply[1])
+        _, cls_name, message = reply
+        cls = getattr(core_errors, cls_name, None)
+        if not (isinstance(cls, type) and issubclass(cls, StrepError)):
+            cls = FormatError
+        raise cls(message)
+
+    def close(self) -> None:
+        with self._lock:
+            self._stop()
+
+
+class SequenceService:
+    """Uploaded sequences (rows in the store, files under ``uploads/``) and bundled samples."""
+
+    def __init__(self, settings: Settings, store: Store, ctx: SpawnContext) -> None:
+        self.settings = settings
+        self.store = store
+        self.reader = ReaderProcess(
+            ctx, plugins=settings.plugins, timeout=settings.read_timeout_seconds, nice=settings.worker_nice
+        )
+        self._samples: dict[str, dict[str, Any]] | None = None
+        self._samples_lock = threading.Lock()
+
+    @property
+    def tmp_dir(self) -> Path:
+        return self.settings.uploads_dir / ".tmp"
+
+    # ---- samples ---------------------------------------------------------------------------
+    def samples(self) -> dict[str, dict[str, Any]]:
+        """Bundled samples by id (``sample:NAME``); empty while `strep_core.samples` is absent."""
+        with self._samples_lock:
+            if self._samples is None:
+                self._samples = self._load_samples()
+            return self._samples
+
+    @staticmethod
+    def _load_samples() -> dict[str, dict[str, Any]]:
+        if importlib.util.find_spec("strep_core.samples") is None:
+            return {}
+        from strep_core import samples
+
+        out: dict[str, dict[str, Any]] = {}
+        for info in samples.list_samples():
+            get = info.get if isinstance(info, dict) else lambda k, d=None, i=info: getattr(i, k, d)
+            name = str(get("name"))
+            out[SAMPLE_PREFIX + name] = {
+                "id": SAMPLE_PREFIX + name,
+                "name": name,
+                "source": "sample",
+                "frames": int(get("frames", 0) or 0),
+                "dims": int(get("dims", 0) or 0),
+                "points": int(get("points", 0) or 0),
+                "unit": get("unit"),
+                "has_ground_truth": get("has_ground_truth", _sample_has_poses(samples, name)),
+                "description": get("description"),
+            }
+        return out
+
+    # ---- queries ---------------------------------------------------------------------------
+    def list(self) -> list[dict[str, Any]]:
+        uploaded = [_public(row) for row in self.store.list_sequences()]
+        return [*self.samples().values(), *uploaded]
+
+    def get(self, sequence_id: str) -> dict[str, Any] | None:
+        if sequence_id.startswith(SAMPLE_PREFIX):
+            return self.samples().get(sequence_id)
+        row = self.store.get_sequence(sequence_id)
+        return _public(row) if row else None
+
+    def source_of(self, sequence_id: str) -> tuple[str, str | None] | None:
+        """``(source, selection)`` for a job's worker: ``sample:NAME`` or the stored file's path."""
+        if sequence_id.startswith(SAMPLE_PREFIX):
+            return (sequence_id, None) if sequence_id in self.samples() else None
+        row = self.store.get_sequence(sequence_id)
+        if row is None:
+            return None
+        return str(self.settings.data_dir / row["path"]), row["selection"]
+
+    # ---- uploads ---------------------------------------------------------------------------
+    def add_upload(self, upload: ReceivedUpload) -> dict[str, Any]:
+        """Validate an upload by reading it, then keep it: rename into place, insert its row.
+
+        Raises `StrepError` (bad content or options); the temporary file is the caller's.
+        """
+        selection = upload.fields.get("frames") or None
+        if selection is not None:
+            try:
+                selection = str(FrameSelection.parse(selection))
+            except SequenceError as exc:
+                raise ConfigError(f"frames: {exc}") from exc
+        name = (upload.fields.get("name") or "").strip()
+        if len(name) > 200 or not all(ch.isprintable() for ch in name):
+            raise ConfigError("name: at most 200 printable characters")
+        try:
+            summary = self.reader.read(upload.path, selection, self.settings.max_inflated_bytes)
+        except StrepError as exc:
+            raise type(exc)(_clean(str(exc), upload.path, upload.filename)) from None
+        seq_id = new_id("seq")
+        folder = self.settings.uploads_dir / seq_id
+        folder.mkdir(parents=True)
+        stored = folder / f"sequence{upload.suffix}"
+        try:
+            upload.path.replace(stored)
+            row = {
+                "id": seq_id,
+                "name": name or _default_name(upload.filename, upload.suffix, summary),
+                "filename": upload.filename,
+                "path": str(stored.relative_to(self.settings.data_dir)),
+                "format": upload.format,
+                "selection": selection,
+                "frames": summary["frames"],
+                "dims": summary["dims"],
+                "points": summary["points"],
+                "unit": summary["unit"],
+                "has_ground_truth": int(summary["has_ground_truth"]),
+                "size_bytes": upload.size,
+                "created_at": now_iso(),
+            }
+            self.store.insert_sequence(row)
+        except BaseException:
+            shutil.rmtree(folder, ignore_errors=True)
+            raise
+        result = self.store.get_sequence(seq_id)
+        assert result is not None
+        return _public(result)
+
+    def delete(self, sequence_id: str) -> str:
+        """``deleted``, ``missing``, ``busy`` (queued or running jobs use it) or ``bundled``."""
+        if sequence_id.startswith(SAMPLE_PREFIX):
+            return "bundled" if sequence_id in self.samples() else "missing"
+        outcome = self.store.delete_sequence(sequence_id)
+        if outcome == "deleted":
+            shutil.rmtree(self.settings.uploads_dir / sequence_id, ignore_errors=True)
+        return outcome
+
+    def clean(self) -> None:
+        """At start-up: remove unfinished uploads and folders whose row was never written."""
+        shutil.rmtree(self.tmp_dir, ignore_errors=True)
+        self.settings.uploads_dir.mkdir(parents=True, exist_ok=True)
+        known = {Path(p).parts[1] for p in self.store.sequence_paths() if len(Path(p).parts) > 1}
+        for entry in self.settings.uploads_dir.iterdir():
+            if entry.is_dir() and entry.name not in known:
+                log.warning("removing orphaned upload folder %s", entry)
+                shutil.rmtree(entry, ignore_errors=True)
+
+    def close(self) -> None:
+        self.reader.close()
+
+
+def _sample_has_poses(samples: Any, name: str) -> bool | None:
+    """Whether a bundled ``.npz`` sample has ground-truth poses (its key list only; None if unknown)."""
+    try:
+        path = Path(samples.sample_path(name))
+        if path.suffix != ".npz":
+            return None
+        with zipfile.ZipFile(path) as zf:
+            return "poses.npy" in zf.namelist()
+    except Exception:
+        return None
+
+
+def _clean(message: str, path: Path, filename: str) -> str:
+    """A reader's message without server paths: the upload's temporary name becomes the uploaded
+    file's name, and files extracted from an archive are named ``archive.zip:member``."""
+    message = message.replace(str(path), filename).replace(path.name, filename)
+    return _EXTRACTED.sub(f"{filename}:", message)
+
+
+def _default_name(filename: str, suffix: str, summary: dict[str, Any]) -> str:
+    stem = filename[: -len(suffix)] if filename.lower().endswith(suffix) else filename
+    return stem or str(summary.get("name") or "sequence")
+
+
+def _public(row: dict[str, Any]) -> dict[str, Any]:
+    return {
+        "id": row["id"],
+        "name": row["name"],
+        "source": "upload",
+        "frames": row["frames"],
+        "dims": row["dims"],
+        "points": row["points"],
+        "unit": row["unit"],
+        "has_ground_truth": row["has_ground_truth"],
+        "format": row["format"],
+        "filename": row["filename"],
+        "selection": row["selection"],
+        "size_bytes": row["size_bytes"],
+        "created_at": row["created_at"],
+    }

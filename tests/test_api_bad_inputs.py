@@ -1,0 +1,602 @@
+"""Bad requests, table-driven: each gets a 4xx with a clear ``{"detail": ...}`` and stores nothing.
+
+"Nothing" is checked after every case: no new row in any table, no new file or folder in the
+data directory (uploads, their temporary folder, results, logs).
+"""
+
+from __future__ import annotations
+
+import gzip
+import io
+import json
+import tarfile
+import time
+import zipfile
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from app.core.config import Settings
+from app.main import create_app
+
+UPLOAD_LIMIT = 256 * 1024
+INFLATE_LIMIT = 1024 * 1024
+FRAMES = 8
+
+
+# ---- inputs ----------------------------------------------------------------------------------
+
+
+def npz_bytes(**arrays: Any) -> bytes:
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+def sequence_arrays(frames: int = FRAMES, points: int = 32, dims: int = 2) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(0)
+    poses = np.repeat(np.eye(dims + 1)[None], frames, axis=0)
+    poses[:, :dims, dims] = rng.normal(size=(frames, dims))
+    return {
+        "points": rng.normal(size=(frames * points, dims)) * 10,
+        "counts": np.full(frames, points),
+        "poses": poses,
+    }
+
+
+def with_value(arrays: dict[str, np.ndarray], value: float) -> dict[str, np.ndarray]:
+    out = dict(arrays)
+    out["points"] = arrays["points"].copy()
+    out["points"][5, 0] = value
+    return out
+
+
+def ply_bytes(points: np.ndarray) -> bytes:
+    header = f"ply\nformat ascii 1.0\nelement vertex {len(points)}\nproperty float x\nproperty float y\n"
+    header += "property float z\nend_header\n"
+    return (header + "".join(f"{x} {y} {z}\n" for x, y, z in points)).encode()
+
+
+def zip_bytes(entries: dict[str, bytes], *, compression: int = zipfile.ZIP_DEFLATED) -> bytes:
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", compression) as zf:
+        for name, data in entries.items():
+            zf.writestr(zipfile.ZipInfo(name), data, compress_type=compression)
+    return buf.getvalue()
+
+
+def ply_frames(frames: int = 4, points: int = 40) -> dict[str, bytes]:
+    rng = np.random.default_rng(1)
+    return {f"frame_{i:03d}.ply": ply_bytes(rng.uniform(0, 2, size=(points, 3))) for i in range(frames)}
+
+
+def tum_lines(count: int) -> bytes:
+    return "".join(f"{i} {0.1 * i} 0 0 0 0 0 1\n" for i in range(count)).encode()
+
+
+GOOD = sequence_arrays()
+GOOD_NPZ = npz_bytes(**GOOD)
+GOOD_ZIP = zip_bytes({**ply_frames(), "poses.tum": tum_lines(4)})
+
+
+def tar_bytes(entries: dict[str, bytes]) -> bytes:
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w") as tar:
+        for name, data in entries.items():
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            tar.addfile(info, io.BytesIO(data))
+    return buf.getvalue()
+
+
+def chunked_upload(filename: str, size: int) -> list[bytes]:
+    """A multipart body as a list of chunks: sent without Content-Length (chunked)."""
+    head = f'--XyZ\r\nContent-Disposition: form-data; name="file"; filename="{filename}"\r\n\r\n'.encode()
+    chunk = bytes(64 * 1024)
+    body = [head] + [chunk] * (size // len(chunk)) + [bytes(size % len(chunk)), b"\r\n--XyZ--\r\n"]
+    return body
+
+
+# ---- the table ---------------------------------------------------------------------------------
+
+
+@dataclass
+class Bad:
+    """One bad request and what it must answer."""
+
+    id: str
+    method: str
+    url: str
+    status: int
+    message: str
+    kwargs: dict[str, Any] = field(default_factory=dict)
+
+
+def upload(filename: str, data: bytes, **form: str) -> dict[str, Any]:
+    return {"files": {"file": (filename, data)}, "data": form}
+
+
+def job(**body: Any) -> dict[str, Any]:
+    return {"json": {"sequence_id": "$SEQ", "method": "identity", **body}}
+
+
+CASES: list[Bad] = [
+    # ---- uploads: the file
+    Bad(
+        "broken zip",
+        "POST",
+        "/api/sequences",
+        400,
+        "x.zip: not a readable zip archive",
+        upload("x.zip", b"PK\x03\x04junk" * 50),
+    ),
+    Bad(
+        "truncated zip",
+        "POST",
+        "/api/sequences",
+        400,
+        "not a readable zip archive",
+        upload("frames.zip", GOOD_ZIP[: len(GOOD_ZIP) * 2 // 3]),
+    ),
+    Bad(
+        "zip entry with ..",
+        "POST",
+        "/api/sequences",
+        400,
+        "unsafe entry '../evil.ply'",
+        upload("evil.zip", zip_bytes({**ply_frames(), "../evil.ply": b"x"})),
+    ),
+    Bad(
+        "zip entry with absolute path",
+        "POST",
+        "/api/sequences",
+        400,
+        "unsafe entry '/etc/evil.ply'",
+        upload("abs.zip", zip_bytes({**ply_frames(), "/etc/evil.ply": b"x"})),
+    ),
+    Bad(
+        "zip inflating past the limit",
+        "POST",
+        "/api/sequences",
+        400,
+        f"over the limit of {INFLATE_LIMIT}",
+        upload("bomb.zip", zip_bytes({**ply_frames(), "zeros.ply": bytes(2 * INFLATE_LIMIT)})),
+    ),
+    Bad(
+        "zip of a zip",
+        "POST",
+        "/api/sequences",
+        400,
+        "a zip inside a zip is not supported",
+        upload("nested.zip", zip_bytes({"inner.zip": GOOD_ZIP})),
+    ),
+    Bad(
+        "zip of unknown files",
+        "POST",
+        "/api/sequences",
+        400,
+        "the archive's content has an unknown format",
+        upload("notes.zip", zip_bytes({"a.txt": b"hello", "b.txt": b"world"})),
+    ),
+    Bad(
+        "file over the size limit",
+        "POST",
+        "/api/sequences",
+        413,
+        f"larger than the limit of {UPLOAD_LIMIT} bytes",
+        upload("big.npz", bytes(UPLOAD_LIMIT + 1)),
+    ),
+    Bad(
+        "streamed file over the size limit",
+        "POST",
+        "/api/sequences",
+        413,
+        "larger than the limit",
+        {
+            "content": chunked_upload("big.npz", UPLOAD_LIMIT + 1),
+            "headers": {"Content-Type": "multipart/form-data; boundary=XyZ"},
+        },
+    ),
+    Bad(
+        "unknown format", "POST", "/api/sequences", 400, "unknown format of 'scan.txt'", upload("scan.txt", b"1 2 3\n")
+    ),
+    Bad("no extension", "POST", "/api/sequences", 400, "unknown format of 'sequence'", upload("sequence", GOOD_NPZ)),
+    Bad(
+        "corrupt npz",
+        "POST",
+        "/api/sequences",
+        400,
+        "bad.npz: not a readable .npz file",
+        upload("bad.npz", b"\x00" * 64),
+    ),
+    Bad("empty npz", "POST", "/api/sequences", 400, "not a readable .npz file", upload("empty.npz", b"")),
+    Bad(
+        "npz without points",
+        "POST",
+        "/api/sequences",
+        400,
+        "needs keys 'points' and 'counts', or 'frames'",
+        upload("keys.npz", npz_bytes(values=np.zeros(3))),
+    ),
+    Bad(
+        "NaN values",
+        "POST",
+        "/api/sequences",
+        400,
+        "frame 0 contains non-finite values (NaN or inf)",
+        upload("nan.npz", npz_bytes(**with_value(GOOD, np.nan))),
+    ),
+    Bad(
+        "inf values",
+        "POST",
+        "/api/sequences",
+        400,
+        "frame 0 contains non-finite values (NaN or inf)",
+        upload("inf.npz", npz_bytes(**with_value(GOOD, np.inf))),
+    ),
+    Bad(
+        "empty frame",
+        "POST",
+        "/api/sequences",
+        400,
+        "frame 3 has 0 points; at least 3 are needed",
+        upload(
+            "hole.npz",
+            npz_bytes(
+                points=GOOD["points"][:-32], counts=np.array([32, 32, 32, 0, 32, 32, 32, 32]), poses=GOOD["poses"]
+            ),
+        ),
+    ),
+    Bad(
+        "counts not matching points",
+        "POST",
+        "/api/sequences",
+        400,
+        "'counts' must be non-negative and sum to",
+        upload("counts.npz", npz_bytes(points=GOOD["points"], counts=np.full(FRAMES, 31))),
+    ),
+    Bad(
+        "4D points",
+        "POST",
+        "/api/sequences",
+        400,
+        "expected (N, 2) or (N, 3)",
+        upload("dims.npz", npz_bytes(frames=np.zeros((FRAMES, 10, 4)))),
+    ),
+    Bad(
+        "pose count not matching frames",
+        "POST",
+        "/api/sequences",
+        400,
+        "7 poses for 8 frames",
+        upload("poses.npz", npz_bytes(points=GOOD["points"], counts=GOOD["counts"], poses=GOOD["poses"][:7])),
+    ),
+    Bad(
+        "pose shape of the other dimension",
+        "POST",
+        "/api/sequences",
+        400,
+        "poses have shape (8, 4, 4)",
+        upload(
+            "poses3d.npz",
+            npz_bytes(points=GOOD["points"], counts=GOOD["counts"], poses=np.repeat(np.eye(4)[None], FRAMES, axis=0)),
+        ),
+    ),
+    Bad(
+        "one frame only",
+        "POST",
+        "/api/sequences",
+        400,
+        "a sequence needs at least 2 frames, got 1",
+        upload("one.npz", npz_bytes(points=GOOD["points"][:32], counts=np.array([32]))),
+    ),
+    Bad(
+        "broken tar",
+        "POST",
+        "/api/sequences",
+        400,
+        "broken.tar: not a readable tar archive",
+        upload("broken.tar", b"not a tar" * 100),
+    ),
+    Bad(
+        "tar without frames",
+        "POST",
+        "/api/sequences",
+        400,
+        "empty.tar",
+        upload("empty.tar", tar_bytes({"readme.txt": b"nothing here"})),
+    ),
+    Bad(
+        "garbage CARMEN log",
+        "POST",
+        "/api/sequences",
+        400,
+        "no FLASER lines",
+        upload("robot.log", b"# not a laser log\nODOM 0 0 0\n"),
+    ),
+    Bad(
+        "gzip that is not gzip",
+        "POST",
+        "/api/sequences",
+        400,
+        "robot.log.gz",
+        upload("robot.log.gz", b"plain text, not gzip"),
+    ),
+    Bad(
+        "binary CARMEN log",
+        "POST",
+        "/api/sequences",
+        400,
+        "not a text CARMEN log",
+        upload("bin.log.gz", gzip.compress(bytes(range(256)) * 4)),
+    ),
+    # ---- uploads: the form
+    Bad("not multipart", "POST", "/api/sequences", 415, "multipart/form-data", {"json": {"file": "x"}}),
+    Bad(
+        "no file part",
+        "POST",
+        "/api/sequences",
+        422,
+        "no file: send the sequence in a form part named 'file'",
+        {"files": {"frames": (None, "0:4")}},
+    ),
+    Bad(
+        "file part without a file name",
+        "POST",
+        "/api/sequences",
+        422,
+        "'file' part must be a file",
+        {"files": {"file": (None, "just text")}},
+    ),
+    Bad(
+        "unexpected form field",
+        "POST",
+        "/api/sequences",
+        422,
+        "unexpected form field 'colour'",
+        {"files": {"file": ("ok.npz", GOOD_NPZ)}, "data": {"colour": "red"}},
+    ),
+    Bad(
+        "two files",
+        "POST",
+        "/api/sequences",
+        422,
+        "exactly one file",
+        {"files": [("file", ("a.npz", GOOD_NPZ)), ("file", ("b.npz", GOOD_NPZ))]},
+    ),
+    Bad(
+        "malformed frame selection",
+        "POST",
+        "/api/sequences",
+        422,
+        "frames: frame selection 'every' is not",
+        upload("ok.npz", GOOD_NPZ, frames="every"),
+    ),
+    Bad(
+        "frame selection keeping one frame",
+        "POST",
+        "/api/sequences",
+        400,
+        "keeps 1 of 8 frames",
+        upload("ok.npz", GOOD_NPZ, frames="0:1"),
+    ),
+    Bad(
+        "name too long",
+        "POST",
+        "/api/sequences",
+        422,
+        "name: at most 200 printable characters",
+        upload("ok.npz", GOOD_NPZ, name="n" * 201),
+    ),
+    Bad(
+        "truncated multipart body",
+        "POST",
+        "/api/sequences",
+        400,
+        "truncated",
+        {
+            "content": b'--XyZ\r\nContent-Disposition: form-data; name="file"; filename="a.npz"\r\n\r\n'
+            + GOOD_NPZ[:100],
+            "headers": {"Content-Type": "multipart/form-data; boundary=XyZ"},
+        },
+    ),
+    # ---- jobs
+    Bad("unknown method", "POST", "/api/jobs", 422, "unknown method 'teleport'", job(method="teleport")),
+    Bad(
+        "unknown sequence",
+        "POST",
+        "/api/jobs",
+        404,
+        "sequence 'seq_missing' not found",
+        {"json": {"sequence_id": "seq_missing", "method": "identity"}},
+    ),
+    Bad(
+        "negative iterations",
+        "POST",
+        "/api/jobs",
+        422,
+        "optim.iterations: Input should be greater than or equal to 0",
+        job(optim={"iterations": -1}),
+    ),
+    Bad(
+        "too many iterations",
+        "POST",
+        "/api/jobs",
+        422,
+        "optim.iterations: Input should be less than or equal to",
+        job(optim={"iterations": 10**9}),
+    ),
+    Bad("seed out of range", "POST", "/api/jobs", 422, "seed: Input should be less than or equal to", job(seed=2**40)),
+    Bad("unknown config field", "POST", "/api/jobs", 422, "colour: Extra inputs are not permitted", job(colour="red")),
+    Bad(
+        "unknown nested field",
+        "POST",
+        "/api/jobs",
+        422,
+        "optim.lr: Extra inputs are not permitted",
+        job(optim={"lr": 1}),
+    ),
+    Bad(
+        "unknown device", "POST", "/api/jobs", 422, "device: Input should be 'cpu', 'cuda' or 'auto'", job(device="tpu")
+    ),
+    Bad(
+        "NaN learning rate",
+        "POST",
+        "/api/jobs",
+        422,
+        "optim.lr_network",
+        {
+            "content": b'{"sequence_id": "$SEQ", "method": "identity", "optim": {"lr_network": NaN}}',
+            "headers": {"Content-Type": "application/json"},
+        },
+    ),
+    Bad("bad frame selection", "POST", "/api/jobs", 422, "frames: frame selection 'half' is not", job(frames="half")),
+    Bad(
+        "frame selection too short",
+        "POST",
+        "/api/jobs",
+        422,
+        "frames: '7:' keeps fewer than 2 of the sequence's 8 frames",
+        job(frames="7:"),
+    ),
+    Bad(
+        "model from a server path",
+        "POST",
+        "/api/jobs",
+        422,
+        "server paths are not accepted",
+        job(from_model="/etc/passwd"),
+    ),
+    Bad("freeze without a model", "POST", "/api/jobs", 422, "freeze needs from_model", job(freeze=True)),
+    Bad(
+        "missing sequence id", "POST", "/api/jobs", 422, "sequence_id: Field required", {"json": {"method": "identity"}}
+    ),
+    Bad(
+        "malformed JSON",
+        "POST",
+        "/api/jobs",
+        422,
+        "body: the body is not valid JSON (Expecting property name",
+        {"content": b"{not json", "headers": {"Content-Type": "application/json"}},
+    ),
+    Bad(
+        "duplicate methods",
+        "POST",
+        "/api/comparisons",
+        422,
+        "methods must be distinct",
+        {"json": {"sequence_id": "$SEQ", "methods": ["icp", "icp"]}},
+    ),
+    Bad(
+        "no methods",
+        "POST",
+        "/api/comparisons",
+        422,
+        "methods: List should have at least 1 item",
+        {"json": {"sequence_id": "$SEQ", "methods": []}},
+    ),
+    Bad(
+        "comparison with an unknown method",
+        "POST",
+        "/api/comparisons",
+        422,
+        "unknown method 'teleport'",
+        {"json": {"sequence_id": "$SEQ", "methods": ["icp", "teleport"]}},
+    ),
+    Bad(
+        "comparison with config.method",
+        "POST",
+        "/api/comparisons",
+        422,
+        "give the methods in 'methods'",
+        {"json": {"sequence_id": "$SEQ", "methods": ["icp"], "config": {"method": "icp"}}},
+    ),
+    # ---- unknown ids and bad queries
+    Bad("unknown job", "GET", "/api/jobs/job_missing", 404, "job 'job_missing' not found"),
+    Bad("cancel unknown job", "DELETE", "/api/jobs/job_missing", 404, "job 'job_missing' not found"),
+    Bad("events of unknown job", "GET", "/api/jobs/job_missing/events", 404, "job 'job_missing' not found"),
+    Bad("file of unknown job", "GET", "/api/jobs/job_missing/files/map.ply", 404, "job 'job_missing' not found"),
+    Bad("unknown sequence id", "GET", "/api/sequences/seq_missing", 404, "sequence 'seq_missing' not found"),
+    Bad("delete unknown sequence", "DELETE", "/api/sequences/seq_missing", 404, "sequence 'seq_missing' not found"),
+    Bad("delete unknown sample", "DELETE", "/api/sequences/sample:nope", 404, "sequence 'sample:nope' not found"),
+    Bad("unknown comparison", "GET", "/api/comparisons/cmp_missing", 404, "comparison 'cmp_missing' not found"),
+    Bad("unknown result file", "GET", "/api/jobs/$JOB/files/strep.db", 404, "no result file named 'strep.db'"),
+    Bad(
+        "bad Last-Event-ID",
+        "GET",
+        "/api/jobs/$JOB/events",
+        400,
+        "Last-Event-ID must be a non-negative integer",
+        {"headers": {"Last-Event-ID": "soon"}},
+    ),
+    Bad("page size zero", "GET", "/api/jobs?limit=0", 422, "query.limit: Input should be greater than or equal to 1"),
+    Bad("unknown status filter", "GET", "/api/jobs?status=sleeping", 422, "query.status: Input should be 'queued'"),
+    Bad("unknown route", "GET", "/api/nothing", 404, "Not Found"),
+]
+
+
+# ---- the test ----------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[TestClient, Path, dict[str, str]]]:
+    data_dir = tmp_path_factory.mktemp("bad")
+    settings = Settings(data_dir=data_dir, max_upload_bytes=UPLOAD_LIMIT, max_inflated_bytes=INFLATE_LIMIT)
+    with TestClient(create_app(settings)) as client:
+        seq = client.post("/api/sequences", files={"file": ("good.npz", GOOD_NPZ)})
+        assert seq.status_code == 201, seq.text
+        job = client.post("/api/jobs", json={"sequence_id": seq.json()["id"], "method": "identity"})
+        assert job.status_code == 201, job.text
+        deadline = time.monotonic() + 120
+        while client.get(f"/api/jobs/{job.json()['id']}").json()["status"] != "succeeded":
+            assert time.monotonic() < deadline, "the baseline job did not finish"
+            time.sleep(0.05)
+        yield client, data_dir, {"$SEQ": seq.json()["id"], "$JOB": job.json()["id"]}
+
+
+def snapshot(client: TestClient, data_dir: Path) -> tuple[dict[str, int], list[str]]:
+    counts = client.app.state.service.store.counts()  # type: ignore[attr-defined]
+    files = sorted(
+        str(p.relative_to(data_dir))
+        for p in data_dir.rglob("*")
+        if p.name not in ("strep.db", "strep.db-wal", "strep.db-shm")
+    )
+    return counts, files
+
+
+def substitute(value: Any, ids: dict[str, str]) -> Any:
+    if isinstance(value, str):
+        for key, real in ids.items():
+            value = value.replace(key, real)
+        return value
+    if isinstance(value, bytes):
+        for key, real in ids.items():
+            value = value.replace(key.encode(), real.encode())
+        return value
+    if isinstance(value, dict):
+        return {k: substitute(v, ids) for k, v in value.items()}
+    return value
+
+
+def test_the_table_is_large_enough() -> None:
+    assert len(CASES) >= 20
+    assert len({c.id for c in CASES}) == len(CASES)
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])
+def test_bad_request(case: Bad, env: tuple[TestClient, Path, dict[str, str]]) -> None:
+    client, data_dir, ids = env
+    before = snapshot(client, data_dir)
+    kwargs = {k: substitute(v, ids) for k, v in case.kwargs.items()}
+    r = client.request(case.method, substitute(case.url, ids), **kwargs)
+    assert r.status_code == case.status, r.text
+    body = r.json()
+    assert isinstance(body["detail"], str), body
+    assert case.message in body["detail"], body["detail"]
+    assert str(data_dir) not in json.dumps(body), "server paths leak into the message"
+    assert snapshot(client, data_dir) == before, "a bad request left something behind"
