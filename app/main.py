@@ -8,11 +8,14 @@ from __future__ import annotations
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from pathlib import Path
 from typing import Any
 
 from fastapi import FastAPI
 from fastapi.concurrency import run_in_threadpool
 from fastapi.middleware.cors import CORSMiddleware
+from fastapi.responses import FileResponse
+from fastapi.staticfiles import StaticFiles
 
 import strep_core
 from app.api.main import api_router
@@ -21,6 +24,8 @@ from app.core.errors import install_error_handlers
 from app.services import Service
 
 log = logging.getLogger("strep.service")
+
+STATIC_DIR = Path(__file__).resolve().parents[1] / "static"
 
 DESCRIPTION = """Unsupervised global registration of temporal sequences of 2D/3D point clouds.
 
@@ -61,8 +66,21 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             allow_headers=["Authorization", "Content-Type", "Last-Event-ID"],
         )
     app.include_router(api_router)
+    _mount_page(app)
     _document_errors(app)
     return app
+
+
+def _mount_page(app: FastAPI) -> None:
+    """The web page: ``/`` and its assets under ``/static`` (all served locally, no CDN)."""
+    if not STATIC_DIR.is_dir():  # an install without the page: the API still works
+        log.warning("no static/ folder at %s: the web page is not served", STATIC_DIR)
+        return
+    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+
+    @app.get("/", include_in_schema=False)
+    def index() -> FileResponse:
+        return FileResponse(STATIC_DIR / "index.html", media_type="text/html")
 
 
 def _open_service(settings: Settings) -> Service:

@@ -1,0 +1,335 @@
+"""The viser viewer: scene contents, throttle, comparison layout, replay, lifecycle."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+import urllib.request
+
+import numpy as np
+import pytest
+
+from app.viewer import ViewerServer
+from app.viewer.scene import History, Snapshot, poses_to_matrices, rotations_to_wxyz
+from strep_core import geometry as g
+from strep_core.config import RunConfig
+from strep_core.events import IterationEvent, ListSink, MultiSink, StartEvent, pose_list
+from strep_core.methods import run
+from strep_core.pipeline import load_input
+
+MAX_POINTS = 8_000
+
+
+@pytest.fixture(scope="module")
+def seq():
+    return load_input("sample:sim2d-small")
+
+
+@pytest.fixture(scope="module")
+def viewer():
+    v = ViewerServer(port=0, max_points_per_job=MAX_POINTS, max_rate_hz=10.0)
+    yield v
+    v.close()
+
+
+@pytest.fixture(scope="module")
+def icp_events(seq, viewer):
+    """A real icp run, watched live by the viewer (job ``live-icp``)."""
+    events = ListSink()
+    sink = viewer.sink("live-icp", "icp", seq, select=True)
+    run(seq, RunConfig(method="icp"), sink=MultiSink([events, sink]))
+    assert viewer.wait_idle(10)
+    return events.events
+
+
+def _frame_pose(viewer: ViewerServer, key: str, k: int) -> tuple[np.ndarray, np.ndarray]:
+    node = viewer.scene_node(f"/jobs/{key}/est/f{k}")
+    return np.asarray(node.position), np.asarray(node.wxyz)
+
+
+def _assert_shows(viewer: ViewerServer, key: str, pose_vectors: list[list[float]]) -> None:
+    expected = poses_to_matrices(pose_vectors)
+    q = rotations_to_wxyz(expected[:, :3, :3])
+    for k in (0, len(expected) // 2, len(expected) - 1):
+        pos, wxyz = _frame_pose(viewer, key, k)
+        np.testing.assert_allclose(pos, expected[k, :3, 3], rtol=1e-5, atol=1e-3)
+        np.testing.assert_allclose(wxyz, q[k], atol=1e-5)
+
+
+def test_live_run_builds_the_scene(viewer, seq, icp_events) -> None:
+    key = viewer.jobs()["live-icp"]["key"]
+    names = set(viewer.node_names())
+    root = f"/jobs/{key}"
+    assert {root, f"{root}/label", f"{root}/est", f"{root}/trajectory", f"{root}/poses", f"{root}/gt"} <= names
+    clouds = [viewer.scene_node(f"{root}/est/f{k}") for k in range(len(seq))]
+    assert all(c is not None for c in clouds)
+    assert sum(len(c.points) for c in clouds) <= MAX_POINTS
+    assert {c.points.dtype for c in clouds} == {np.dtype(np.float32)}
+    # the final poses are on screen, the trajectory has K-1 segments, pose markers are bounded
+    _assert_shows(viewer, key, icp_events[-1].poses)
+    assert viewer.scene_node(f"{root}/trajectory").points.shape == (len(seq) - 1, 2, 3)
+    assert len(viewer.scene_node(f"{root}/poses").batched_positions) <= 64
+    info = viewer.jobs()["live-icp"]
+    assert info["finished"] and info["iteration"] == 64 and info["chart"] == ["ate"]
+    assert "icp" in viewer.scene_node(f"{root}/label").text
+
+
+def test_throttle_keeps_the_latest_state(viewer, seq) -> None:
+    gt = g.pose_to_vector(seq.poses)
+    rng = np.random.default_rng(0)
+    n = 300
+    events = [
+        IterationEvent(
+            iteration=i,
+            total=n,
+            elapsed=i * 0.01,
+            losses={"total": 1.0 / i},
+            ate=1.0 / i,
+            poses=pose_list(gt + rng.normal(scale=0.5, size=gt.shape)),
+        )
+        for i in range(1, n + 1)
+    ]
+    sink = viewer.sink("burst", "burst", seq, select=True)
+    sink.emit(
+        StartEvent(
+            method="fake",
+            sequence=seq.name,
+            frames=len(seq),
+            dims=2,
+            unit="px",
+            total_iterations=n,
+            initial_guess="identity",
+        )
+    )
+    assert viewer.wait_idle(5)
+    before = viewer.jobs()["burst"]["pushes"]
+    t0 = time.perf_counter()
+    for ev in events:
+        sink.emit(ev)
+    emit_seconds = time.perf_counter() - t0
+    assert viewer.wait_idle(5)
+    info = viewer.jobs()["burst"]
+    assert info["pushes"] - before <= 3  # 300 events in a burst -> one or two pushes
+    assert info["shown_iteration"] == n  # ... of the latest state
+    assert emit_seconds < 0.5  # the producer is never held up (measured: ~20k events/s)
+    _assert_shows(viewer, info["key"], events[-1].poses)
+    # paced at ~100 events/s for 1 s: at most ~10 pushes per second
+    before = viewer.jobs()["burst"]["pushes"]
+    t0 = time.perf_counter()
+    for ev in events[:100]:
+        sink.emit(ev)
+        time.sleep(0.01)
+    elapsed = time.perf_counter() - t0
+    assert viewer.wait_idle(5)
+    pushes = viewer.jobs()["burst"]["pushes"] - before
+    assert 2 <= pushes <= 10 * elapsed + 2
+    # the history is bounded (300 + 100 snapshots kept within the limit)
+    assert viewer.jobs()["burst"]["history"] <= viewer.history_limit
+
+
+def test_comparison_side_by_side_and_replay(viewer, seq, icp_events) -> None:
+    identity = ListSink()
+    run(seq, RunConfig(method="identity"), sink=identity)
+    stored = [ev.model_dump() for ev in icp_events]  # as the job store keeps them
+    viewer.load_job("cmp-icp", "icp", seq, stored, group="cmp", group_title="icp vs identity", select=True)
+    viewer.load_job("cmp-id", "identity", seq, identity.events, group="cmp")
+    assert viewer.wait_idle(10)
+    jobs = viewer.jobs()
+    a, b = jobs["cmp-icp"]["key"], jobs["cmp-id"]["key"]
+    pa = np.asarray(viewer.scene_node(f"/jobs/{a}").position)
+    pb = np.asarray(viewer.scene_node(f"/jobs/{b}").position)
+    gt_map = np.concatenate([f @ p[:2, :2].T + p[:2, 2] for f, p in zip(seq.frames, seq.poses, strict=True)])
+    width = gt_map[:, 0].max() - gt_map[:, 0].min()
+    assert pb[0] - pa[0] > width and pb[1] == pa[1]
+    assert viewer.scene_node(f"/jobs/{a}").visible and viewer.scene_node(f"/jobs/{b}").visible
+    assert not viewer.scene_node(f"/jobs/{jobs['burst']['key']}").visible  # other runs hidden
+    assert viewer.run_options()["icp vs identity [cmp]"] == "cmp"
+    # replay: iteration 20 of the stored icp run, then play to the end
+    at20 = next(e for e in icp_events if e.kind == "iteration" and e.iteration == 20)
+    viewer.set_replay(iteration=20)
+    assert viewer.wait_idle(5)
+    _assert_shows(viewer, a, at20.poses)
+    assert viewer.jobs()["cmp-icp"]["shown_iteration"] == 20
+    viewer.set_replay(iteration=0, playing=True)
+    deadline = time.monotonic() + 10
+    while viewer.replay_state()["playing"] and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert viewer.wait_idle(5)
+    assert viewer.jobs()["cmp-icp"]["shown_iteration"] == 64
+    _assert_shows(viewer, a, icp_events[-1].poses)
+    viewer.set_replay(live=True)
+    assert viewer.wait_idle(5)
+
+
+def test_clients_get_the_page_and_the_scene(viewer, icp_events) -> None:
+    import viser
+    import websockets.sync.client as wsc
+
+    with urllib.request.urlopen(viewer.url, timeout=5) as resp:
+        assert resp.status == 200
+        assert b"<html" in resp.read(2000).lower()
+    got = [0, 0]
+
+    def tab(i: int) -> None:  # two browser tabs at once: both receive the scene
+        url = f"ws://127.0.0.1:{viewer.port}"
+        with wsc.connect(url, subprotocols=[f"viser-v{viser.__version__}"], max_size=None) as ws:
+            deadline = time.monotonic() + 3
+            while time.monotonic() < deadline and got[i] < 100_000:
+                try:
+                    got[i] += len(ws.recv(timeout=0.5))
+                except TimeoutError:
+                    break
+
+    threads = [threading.Thread(target=tab, args=(i,)) for i in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert min(got) > 50_000  # the replayed scene holds the point clouds (float32)
+
+
+class _Tab:
+    """A minimal browser tab: a viser websocket client that reports a camera and moves controls."""
+
+    def __init__(self, port: int) -> None:
+        import viser
+        import websockets.sync.client as wsc
+
+        self.ws = wsc.connect(f"ws://127.0.0.1:{port}", subprotocols=[f"viser-v{viser.__version__}"], max_size=None)
+        self._send(
+            {
+                "type": "ViewerCameraMessage",
+                "wxyz": (1.0, 0.0, 0.0, 0.0),
+                "position": (0.0, 0.0, 5.0),
+                "fov": 1.0,
+                "near": 0.01,
+                "far": 1000.0,
+                "image_height": 600,
+                "image_width": 800,
+                "look_at": (0.0, 0.0, 0.0),
+                "up_direction": (0.0, 0.0, 1.0),
+            }
+        )
+        self._reader = threading.Thread(target=self._drain, daemon=True)
+        self._reader.start()
+
+    def _send(self, payload: dict) -> None:
+        import msgspec
+
+        self.ws.send(msgspec.msgpack.encode(payload))
+
+    def _drain(self) -> None:
+        try:
+            while True:
+                self.ws.recv()
+        except Exception:
+            return
+
+    def set(self, handle, value) -> None:
+        self._send({"type": "GuiUpdateMessage", "uuid": handle._impl.uuid, "updates": {"value": value}})
+
+    def close(self) -> None:
+        self.ws.close()
+
+
+def _until(predicate, timeout: float = 5.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.02)
+    return False
+
+
+def test_gui_controls_from_a_browser_tab(viewer, seq, icp_events) -> None:
+    viewer.load_job("gui-icp", "icp", seq, icp_events, select=True)
+    assert viewer.wait_idle(5)
+    key = viewer.jobs()["gui-icp"]["key"]
+    tab = _Tab(viewer.port)
+    try:
+        assert _until(lambda: len(viewer.server.get_clients()) == 1)
+        tab.set(viewer.controls["iteration"], 30)  # dragging the slider leaves live mode
+        assert _until(lambda: viewer.replay_state()["iteration"] == 30 and not viewer.replay_state()["live"])
+        assert viewer.wait_idle(5) and viewer.jobs()["gui-icp"]["shown_iteration"] == 30
+        tab.set(viewer.controls["ground_truth"], False)
+        assert _until(lambda: not viewer.replay_state()["show_gt"]) and viewer.wait_idle(5)
+        assert not viewer.scene_node(f"/jobs/{key}/gt").visible
+        tab.set(viewer.controls["point_size"], 2.0)
+        assert _until(lambda: viewer.replay_state()["point_scale"] == 2.0) and viewer.wait_idle(5)
+        other = next(t for t, g in viewer.run_options().items() if g == "live-icp")
+        tab.set(viewer.controls["run"], other)  # pick another run: its panel shows, this one hides
+        assert _until(lambda: viewer.replay_state()["selected"] == "live-icp") and viewer.wait_idle(5)
+        assert not viewer.scene_node(f"/jobs/{key}").visible
+        # the tab's camera was framed on the picked run: it looks at the middle of its map
+        (client,) = viewer.server.get_clients().values()
+        gt_map = np.concatenate([f @ p[:2, :2].T + p[:2, 2] for f, p in zip(seq.frames, seq.poses, strict=True)])
+        middle = (gt_map.min(0) + gt_map.max(0)) / 2
+        np.testing.assert_allclose(client.camera.look_at[:2], middle, rtol=0.05)
+        tab.set(viewer.controls["live"], True)
+        assert _until(lambda: viewer.replay_state()["live"]) and viewer.wait_idle(5)
+    finally:
+        tab.close()
+    viewer.set_replay(live=True)
+    viewer.set_display(show_gt=True, point_scale=1.0)
+    assert viewer.wait_idle(5) and viewer.scene_node(f"/jobs/{key}/gt").visible
+
+
+def test_history_is_bounded_and_replays() -> None:
+    h = History(limit=8)
+    for i in range(1, 101):
+        h.append(Snapshot(i, float(i), None, {"total": 1.0 / i}, None))
+    assert len(h) <= 8 and h.items[0].iteration == 1 and h.latest.iteration == 100
+    assert h.at(0).iteration == 1 and h.at(1000).iteration == 100
+    its = h.iterations()
+    assert its == sorted(its) and h.at(its[3] + 1).iteration == its[3]
+
+
+def test_close_frees_the_port(seq) -> None:
+    v = ViewerServer(port=0)
+    port = v.port
+    assert v.host == "127.0.0.1"
+    v.sink("j", "icp", seq)
+    assert v.wait_idle(5)
+    v.close()
+    v.close()  # idempotent
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", port))  # the port is free again
+    again = ViewerServer(port=port)
+    try:
+        assert again.port == port
+    finally:
+        again.close()
+
+
+def test_3d_poses_are_drawn_in_the_ground_truth_frame(viewer) -> None:
+    room = load_input("sample:sim3d-room")
+    gt = g.pose_to_vector(room.poses)
+    est = g.pose_to_vector(g.inverse(room.poses[0])[None] @ room.poses)  # frame 0 at identity
+    sink = viewer.sink("room", "fake3d", room, select=True)
+    sink.emit(IterationEvent(iteration=1, total=1, elapsed=0.1, poses=pose_list(est)))
+    assert viewer.wait_idle(5)
+    key = viewer.jobs()["room"]["key"]
+    _assert_shows(viewer, key, pose_list(est))  # each frame carries its own estimated pose
+    anchor = viewer.scene_node(f"/jobs/{key}/est")  # ... and the anchor G_0 inv(T_0) = G_0
+    np.testing.assert_allclose(anchor.position, room.poses[0][:3, 3], atol=1e-5)
+    np.testing.assert_allclose(anchor.wxyz, rotations_to_wxyz(room.poses[0][:3, :3]), atol=1e-5)
+    shown = np.asarray(viewer.scene_node(f"/jobs/{key}/trajectory").points)
+    np.testing.assert_allclose(shown[:, 0], poses_to_matrices(gt)[:-1, :3, 3], atol=1e-4)
+
+
+def test_layout_without_ground_truth_follows_the_estimate(viewer, seq, icp_events) -> None:
+    import dataclasses
+
+    blind = dataclasses.replace(seq, poses=None)
+    viewer.load_job("blind-a", "a", blind, icp_events, group="blind", select=True)
+    viewer.load_job("blind-b", "b", blind, icp_events, group="blind")
+    assert viewer.wait_idle(5) and viewer.wait_idle(5)
+    jobs = viewer.jobs()
+    assert f"/jobs/{jobs['blind-a']['key']}/gt" not in viewer.node_names()
+    est = poses_to_matrices(icp_events[-1].poses)
+    final_map = np.concatenate([f @ p[:2, :2].T + p[:2, 3] for f, p in zip(seq.frames, est, strict=True)])
+    width = final_map[:, 0].max() - final_map[:, 0].min()
+    pa = np.asarray(viewer.scene_node(f"/jobs/{jobs['blind-a']['key']}").position)
+    pb = np.asarray(viewer.scene_node(f"/jobs/{jobs['blind-b']['key']}").position)
+    assert width < pb[0] - pa[0] < 1.5 * width
