@@ -1,0 +1,306 @@
+// STREP Studio web page: launch comparisons, follow them live over Server-Sent Events.
+// Plain JavaScript, no dependencies: every asset is served by the app (works offline).
+"use strict";
+
+const COLORS = ["#2f6fde", "#e67e22", "#27ae60", "#8e44ad", "#c0392b", "#16a085", "#7f8c8d"];
+const FINAL = new Set(["succeeded", "failed", "cancelled", "interrupted"]);
+const token = new URLSearchParams(location.search).get("token") || sessionStorage.getItem("strep-token");
+if (token) sessionStorage.setItem("strep-token", token);
+
+const $ = (sel) => document.querySelector(sel);
+const state = { jobs: new Map(), follow: new Set(), methods: [], sequences: [], comparison: null };
+
+function headers(extra = {}) {
+  return token ? { ...extra, Authorization: `Bearer ${token}` } : extra;
+}
+
+async function api(path, options = {}) {
+  const res = await fetch(path, { ...options, headers: headers(options.headers || {}) });
+  const body = res.headers.get("content-type")?.includes("json") ? await res.json() : await res.text();
+  if (!res.ok) throw new Error((body && body.detail) || `${res.status} ${res.statusText}`);
+  return body;
+}
+
+function say(text, isError = false) {
+  const el = $("#message");
+  el.textContent = text;
+  el.className = isError ? "error" : "";
+}
+
+function fmt(v, digits = 3) {
+  return typeof v === "number" && isFinite(v) ? v.toPrecision(digits) : "–";
+}
+
+// ---- charts ---------------------------------------------------------------------------------
+
+function drawChart(canvas, series, { log = false } = {}) {
+  const ctx = canvas.getContext("2d");
+  const W = canvas.width, H = canvas.height, L = 52, R = 10, T = 10, B = 26;
+  ctx.clearRect(0, 0, W, H);
+  const pts = series.flatMap((s) => s.points).filter(([, y]) => isFinite(y) && (!log || y > 0));
+  ctx.font = "11px system-ui, sans-serif";
+  ctx.fillStyle = "#6b7385";
+  if (!pts.length) {
+    ctx.fillText("waiting for iterations…", L, H / 2);
+    return;
+  }
+  const tx = (y) => (log ? Math.log10(y) : y);
+  let x0 = Math.min(...pts.map((p) => p[0])), x1 = Math.max(...pts.map((p) => p[0]));
+  let y0 = Math.min(...pts.map((p) => tx(p[1]))), y1 = Math.max(...pts.map((p) => tx(p[1])));
+  if (x1 === x0) x1 = x0 + 1;
+  if (y1 === y0) { y0 -= 0.5; y1 += 0.5; }
+  const px = (x) => L + ((x - x0) / (x1 - x0)) * (W - L - R);
+  const py = (y) => T + (1 - (tx(y) - y0) / (y1 - y0)) * (H - T - B);
+  ctx.strokeStyle = "#dde1e8";
+  ctx.lineWidth = 1;
+  for (let i = 0; i <= 4; i++) {
+    const yv = y0 + ((y1 - y0) * i) / 4, yy = T + (1 - i / 4) * (H - T - B);
+    ctx.beginPath(); ctx.moveTo(L, yy); ctx.lineTo(W - R, yy); ctx.stroke();
+    ctx.fillText(fmt(log ? 10 ** yv : yv, 3), 4, yy + 4);
+  }
+  ctx.fillText(String(Math.round(x0)), L, H - 8);
+  ctx.fillText(`${Math.round(x1)} iterations`, W - R - 80, H - 8);
+  for (const s of series) {
+    const p = s.points.filter(([, y]) => isFinite(y) && (!log || y > 0));
+    if (!p.length) continue;
+    ctx.strokeStyle = s.color;
+    ctx.lineWidth = 2;
+    ctx.beginPath();
+    p.forEach(([x, y], i) => (i ? ctx.lineTo(px(x), py(y)) : ctx.moveTo(px(x), py(y))));
+    ctx.stroke();
+  }
+}
+
+function redraw() {
+  const jobs = [...state.follow].map((id) => state.jobs.get(id)).filter(Boolean);
+  drawChart($("#loss-chart"), jobs.map((j) => ({ color: j.color, points: j.loss })), { log: true });
+  drawChart($("#ate-chart"), jobs.map((j) => ({ color: j.color, points: j.ate })));
+  const body = $("#results tbody");
+  body.innerHTML = "";
+  for (const j of jobs) {
+    const m = j.metrics || {};
+    const tr = document.createElement("tr");
+    tr.dataset.jobId = j.id;
+    const files = j.status === "succeeded"
+      ? ["recording.rrd", "trajectory.tum", "map.ply", "metrics.json"]
+          .filter((f) => !j.files || j.files.includes(f))
+          .map((f) => `<a href="/api/jobs/${j.id}/files/${f}" download>${f.split(".").pop()}</a>`).join("")
+      : j.status === "running" || j.status === "queued"
+        ? `<a href="#" data-cancel="${j.id}">cancel</a>` : "";
+    const unit = m.unit ? ` ${m.unit}` : "";
+    tr.innerHTML = `<td><span class="swatch" style="background:${j.color}"></span>${j.method}</td>
+      <td class="status-${j.status}" title="${j.error || ""}">${j.status}</td>
+      <td class="num">${j.iteration ?? "–"}${j.total ? " / " + j.total : ""}</td>
+      <td class="num ate">${fmt(m.ate ?? j.lastAte)}${m.ate != null || j.lastAte != null ? unit : ""}</td>
+      <td class="num">${fmt(m.point_l2)}${m.point_l2 != null ? unit : ""}</td>
+      <td class="num">${fmt(m.wall_seconds ?? j.elapsed, 3)}</td>
+      <td>${files}</td>`;
+    body.appendChild(tr);
+  }
+}
+
+// ---- Server-Sent Events over fetch (so the token header can be sent) ------------------------
+
+async function follow(job) {
+  const entry = state.jobs.get(job.id) || {
+    id: job.id, method: job.method, color: COLORS[state.follow.size % COLORS.length],
+    loss: [], ate: [], status: job.status, metrics: job.metrics, files: job.files, lastId: 0,
+  };
+  state.jobs.set(job.id, entry);
+  state.follow.add(job.id);
+  redraw();
+  while (true) {
+    try {
+      const res = await fetch(`/api/jobs/${job.id}/events`, {
+        headers: headers(entry.lastId ? { "Last-Event-ID": String(entry.lastId) } : {}),
+      });
+      if (!res.ok) throw new Error(`events: ${res.status}`);
+      const reader = res.body.getReader();
+      const decoder = new TextDecoder();
+      let buf = "";
+      for (;;) {
+        const { value, done } = await reader.read();
+        if (done) break;
+        buf += decoder.decode(value, { stream: true });
+        let cut;
+        while ((cut = buf.indexOf("\n\n")) >= 0) {
+          handleMessage(entry, buf.slice(0, cut));
+          buf = buf.slice(cut + 2);
+        }
+      }
+    } catch (err) {
+      console.warn(err);
+    }
+    if (FINAL.has(entry.status)) break;
+    await new Promise((r) => setTimeout(r, 1000)); // reconnect; Last-Event-ID resumes the stream
+  }
+  const fresh = await api(`/api/jobs/${job.id}`).catch(() => null);
+  if (fresh) Object.assign(entry, { status: fresh.status, metrics: fresh.metrics, files: fresh.files, error: fresh.error });
+  redraw();
+  loadJobs();
+}
+
+function handleMessage(entry, block) {
+  let kind = "message", id = null;
+  const data = [];
+  for (const line of block.split("\n")) {
+    if (line.startsWith("event:")) kind = line.slice(6).trim();
+    else if (line.startsWith("id:")) id = Number(line.slice(3).trim());
+    else if (line.startsWith("data:")) data.push(line.slice(5).replace(/^ /, ""));
+  }
+  if (id) entry.lastId = id;
+  if (!data.length) return;
+  let ev;
+  try { ev = JSON.parse(data.join("\n")); } catch { return; }
+  if (kind === "iteration") {
+    entry.iteration = ev.iteration; entry.total = ev.total; entry.elapsed = ev.elapsed;
+    if (ev.losses && ev.losses.total != null) entry.loss.push([ev.iteration, ev.losses.total]);
+    if (ev.ate != null) { entry.ate.push([ev.iteration, ev.ate]); entry.lastAte = ev.ate; }
+  } else if (kind === "start") {
+    entry.total = ev.total_iterations;
+  } else if (kind === "result") {
+    entry.metrics = ev.metrics;
+  } else if (kind === "status") {
+    entry.status = ev.status;
+    if (ev.error) entry.error = ev.error;
+  }
+  scheduleRedraw();
+}
+
+let redrawPending = false;
+function scheduleRedraw() {
+  if (redrawPending) return;
+  redrawPending = true;
+  requestAnimationFrame(() => { redrawPending = false; redraw(); });
+}
+
+// ---- launching ------------------------------------------------------------------------------
+
+async function loadSequences(selectId) {
+  const { data } = await api("/api/sequences");
+  state.sequences = data;
+  const sel = $("#sequence");
+  sel.innerHTML = data
+    .map((s) => `<option value="${s.id}">${s.name} (${s.dims}D, ${s.frames} frames${s.source === "upload" ? ", uploaded" : ""})</option>`)
+    .join("");
+  if (selectId) sel.value = selectId;
+  showSequence();
+}
+
+function showSequence() {
+  const s = state.sequences.find((x) => x.id === $("#sequence").value);
+  $("#sequence-info").textContent = s
+    ? `${s.points} points, unit ${s.unit || "?"}, ${s.has_ground_truth ? "ground truth: ATE shown" : "no ground truth"}`
+    : "";
+}
+
+async function loadMethods() {
+  const { data } = await api("/api/methods");
+  state.methods = data;
+  $("#methods").innerHTML = data
+    .map((m) => `<label title="${m.description}"><input type="checkbox" value="${m.name}"
+      ${m.name === "strep" || m.name === "strep-nolink" ? "checked" : ""}> ${m.name}</label>`)
+    .join("");
+}
+
+async function start() {
+  const methods = [...document.querySelectorAll("#methods input:checked")].map((i) => i.value);
+  if (!methods.length) return say("choose at least one method", true);
+  const iterations = Number($("#iterations").value);
+  $("#start").disabled = true;
+  try {
+    const cmp = await api("/api/comparisons", {
+      method: "POST",
+      headers: { "Content-Type": "application/json" },
+      body: JSON.stringify({ sequence_id: $("#sequence").value, methods, config: { optim: { iterations } } }),
+    });
+    say(`comparison ${cmp.id} started`);
+    showComparison(cmp);
+  } catch (err) {
+    say(err.message, true);
+  } finally {
+    $("#start").disabled = false;
+  }
+}
+
+function showComparison(cmp) {
+  state.follow.clear();
+  state.comparison = cmp.id;
+  $("#live-title").textContent = `Live: ${cmp.sequence_id} — ${cmp.methods.join(" vs ")}`;
+  for (const job of cmp.jobs || []) {
+    state.jobs.delete(job.id);
+    follow(job);
+  }
+  loadJobs();
+}
+
+async function upload(ev) {
+  ev.preventDefault();
+  const file = $("#upload-file").files[0];
+  if (!file) return say("choose a file to upload", true);
+  const form = new FormData();
+  form.append("file", file);
+  const frames = $("#upload-frames").value.trim();
+  if (frames) form.append("frames", frames);
+  $("#upload-button").disabled = true;
+  say(`uploading ${file.name}…`);
+  try {
+    const seq = await api("/api/sequences", { method: "POST", body: form });
+    say(`uploaded ${seq.name}: ${seq.frames} frames`);
+    await loadSequences(seq.id);
+  } catch (err) {
+    say(`upload failed: ${err.message}`, true);
+  } finally {
+    $("#upload-button").disabled = false;
+  }
+}
+
+// ---- history --------------------------------------------------------------------------------
+
+async function loadJobs() {
+  const { data } = await api("/api/jobs?limit=50").catch(() => ({ data: [] }));
+  const body = $("#jobs tbody");
+  body.innerHTML = data
+    .map((j) => `<tr><td>${new Date(j.created_at).toLocaleString()}</td><td>${j.sequence_id}</td><td>${j.method}</td>
+      <td class="status-${j.status}" title="${j.error || ""}">${j.status}</td>
+      <td class="num">${fmt(j.metrics?.ate)}</td><td>${j.comparison_id || ""}</td>
+      <td><a href="#" data-open="${j.comparison_id ? "c:" + j.comparison_id : "j:" + j.id}">open</a></td></tr>`)
+    .join("");
+}
+
+async function openEntry(key) {
+  if (key.startsWith("c:")) {
+    showComparison(await api(`/api/comparisons/${key.slice(2)}`));
+  } else {
+    const job = await api(`/api/jobs/${key.slice(2)}`);
+    showComparison({ id: null, sequence_id: job.sequence_id, methods: [job.method], jobs: [job] });
+  }
+}
+
+document.addEventListener("click", async (ev) => {
+  const t = ev.target;
+  if (t.dataset?.open) { ev.preventDefault(); openEntry(t.dataset.open).catch((e) => say(e.message, true)); }
+  if (t.dataset?.cancel) {
+    ev.preventDefault();
+    await api(`/api/jobs/${t.dataset.cancel}`, { method: "DELETE" }).catch((e) => say(e.message, true));
+  }
+});
+
+async function init() {
+  $("#start").addEventListener("click", start);
+  $("#upload-form").addEventListener("submit", upload);
+  $("#sequence").addEventListener("change", showSequence);
+  try {
+    const health = await api("/api/health");
+    const port = health.viewer_port || 8080;
+    const link = $("#viewer-link");
+    link.href = health.viewer_url || `${location.protocol}//${location.hostname}:${port}/`;
+    if (health.viewer_port === null) link.style.display = "none";
+    await Promise.all([loadSequences(), loadMethods(), loadJobs()]);
+    redraw();
+  } catch (err) {
+    say(`cannot reach the service: ${err.message}`, true);
+  }
+}
+
+init();
