@@ -6,7 +6,22 @@ Suites (``--suites``):
 * ``sim2d``: simulated 2D lidar like the paper's, 20 trajectories over 3 maps (seeded), pixels;
 * ``carmen``: real laser logs, intel and aces windows 0:100 and 300:400, metres, from identity
   (the logs' odometry is dropped so every method starts from the same guess);
-* ``sim3d``: simulated indoor depth like the paper's AVD setting, 16-frame trajectories, metres.
+* ``sim3d``: simulated indoor depth like the paper's AVD setting, 16-frame trajectories, metres;
+* ``sevenscenes``: real Kinect depth (Microsoft 7-Scenes, frames 0-99 in the shared data),
+  16-frame windows of every 4th frame (0:64:4, 16:80:4, 36:100:4) and of every frame (0:16,
+  40:56), depth subsampled every 8 px (about 4,300 points a frame), from identity;
+* ``bunny``: the 10 Stanford bunny range scans (views up to 180 degrees apart), voxel 2 mm
+  (6,000 to 7,000 points a scan), once from identity and once from ``init="fpfh"``
+  (`strep_core.globalreg`), every method alike; its rows are labelled ``bunny`` and
+  ``bunny+fpfh`` so that each initial guess gets its own mean.
+
+On both real 3D suites learned methods run at most 100 iterations (`REAL3D_ITERATIONS`).
+
+The real 3D suites (`POSE_ERROR_SUITES`) add gauge-free errors to their rows (`pose_metrics`):
+their reference trajectories barely translate (7-Scenes windows: a few cm; the bunny scans:
+all but four share one position), so the position-based rigid alignment of ATE leaves the
+rotation of ``rot_err_*`` and ``point_l2`` nearly free. A second table shows them in mm and
+degrees.
 
 ``--quick`` shrinks every suite (fewer sequences, frames and iterations) to finish in minutes.
 """
@@ -34,9 +49,14 @@ DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 @dataclass(frozen=True)
 class BenchCase:
+    """One sequence of a suite; ``init`` (a `RunConfig.init`) overrides every method's
+    initial guess, ``iterations`` caps learned methods' optimiser iterations."""
+
     suite: str
     name: str
     load: Callable[[], Sequence]
+    init: str | None = None
+    iterations: int | None = None
 
 
 def _v1_pose0(data: Path, quick: bool) -> Iterator[BenchCase]:
@@ -84,12 +104,87 @@ def _sim3d(data: Path, quick: bool) -> Iterator[BenchCase]:
         yield BenchCase("sim3d", f"sim3d-{i}", lambda i=i: simulate_3d(2000 + i, frames=16))
 
 
+SEVENSCENES_STRIDE = 8  # 640 x 480 depth every 8 px: about 4,300 valid points a frame
+REAL3D_ITERATIONS = 100  # learned methods on the real 3D suites (60 with --quick)
+BUNNY_VOXEL = 0.002  # metres: 6,000 to 7,000 points a scan
+
+
+def _sevenscenes(data: Path, quick: bool) -> Iterator[BenchCase]:
+    from strep_core.io.depth import read_depth_folder
+
+    path = data / "7scenes"
+    # 16 frames every 4th (start + 15 * 4 < 100) and 16 consecutive frames
+    windows = ["0:64:4", "0:16"] if quick else ["0:64:4", "16:80:4", "36:100:4", "0:16", "40:56"]
+    for w in windows:
+
+        def load(w: str = w) -> Sequence:
+            seq = read_depth_folder(path, frames=w, stride=SEVENSCENES_STRIDE)
+            seq.name = f"7scenes[{w}]"
+            return seq
+
+        yield BenchCase("sevenscenes", f"7scenes[{w}]", load, iterations=REAL3D_ITERATIONS)
+
+
+def _bunny(data: Path, quick: bool) -> Iterator[BenchCase]:
+    from strep_core.io.folder import read_conf
+
+    path = data / "stanford_bunny" / "bun.conf"
+    for init in ("identity", "fpfh"):
+
+        def load(init: str = init) -> Sequence:
+            seq = read_conf(path, voxel=BUNNY_VOXEL)
+            seq.name = f"bunny[{init}]"
+            return seq
+
+        # one summary group per initial guess: "bunny" (identity) and "bunny+fpfh"
+        suite = "bunny" if init == "identity" else f"bunny+{init}"
+        yield BenchCase(suite, f"bunny[{init}]", load, init=init, iterations=REAL3D_ITERATIONS)
+
+
 SUITES: dict[str, Callable[[Path, bool], Iterator[BenchCase]]] = {
     "v1_pose0": _v1_pose0,
     "sim2d": _sim2d,
     "carmen": _carmen,
     "sim3d": _sim3d,
+    "sevenscenes": _sevenscenes,
+    "bunny": _bunny,
 }
+POSE_ERROR_SUITES = ("sevenscenes", "bunny", "bunny+fpfh")  # row labels of the real 3D suites
+
+
+def pose_metrics(frames: list[np.ndarray], est: np.ndarray, gt: np.ndarray) -> dict[str, float]:
+    """Errors that need no alignment by positions (for trajectories that barely translate).
+
+    * ``pair_rot_err_*_deg``, ``pair_trans_err_*``: over every pair ``i < j``, the error
+      ``(G_i^-1 G_j)^-1 (E_i^-1 E_j)`` of the relative pose: its angle (degrees) and its
+      translation (sequence unit); invariant to any rigid motion of either trajectory.
+    * ``point_l2_points``: mean distance between each point placed by the estimate and by the
+      reference after the rigid alignment of those *points* (Umeyama on up to 2,000 points a
+      frame), where `strep_core.metrics.point_l2` aligns camera positions.
+
+    Args:
+        frames: ``K`` local point arrays ``(N_i, 3)``.
+        est, gt: ``(K, 4, 4)`` local -> world poses.
+    """
+    from strep_core import geometry as g
+    from strep_core.metrics import align_rigid
+
+    i, j = np.triu_indices(len(est), 1)
+    err = g.relative(g.relative(gt[i], gt[j]), g.relative(est[i], est[j]))
+    rot = np.degrees(g.rotation_angle(err))
+    trans = np.linalg.norm(g.translation(err), axis=-1)
+    pts = [f[:: max(1, int(np.ceil(len(f) / 2000)))] for f in frames]
+    p_est = np.concatenate([g.apply(e, p) for e, p in zip(est, pts, strict=True)])
+    p_gt = np.concatenate([g.apply(t, p) for t, p in zip(gt, pts, strict=True)])
+    rot_a, t_a = align_rigid(p_est, p_gt)
+    l2 = np.linalg.norm(p_est @ rot_a.T + t_a - p_gt, axis=1)
+    return {
+        "pair_rot_err_mean_deg": float(rot.mean()),
+        "pair_rot_err_max_deg": float(rot.max()),
+        "pair_trans_err_mean": float(trans.mean()),
+        "pair_trans_err_max": float(trans.max()),
+        "point_l2_points": float(l2.mean()),
+    }
 
 
 def method_config(method: str, quick: bool, seq: Sequence) -> RunConfig:
@@ -97,6 +192,16 @@ def method_config(method: str, quick: bool, seq: Sequence) -> RunConfig:
     cfg = RunConfig(method=method)
     if quick:
         cfg = cfg.model_copy(update={"optim": cfg.optim.model_copy(update={"iterations": 60})})
+    return cfg
+
+
+def case_config(case: BenchCase, method: str, quick: bool, seq: Sequence) -> RunConfig:
+    """`method_config` with the case's initial guess and iteration cap."""
+    cfg = method_config(method, quick, seq)
+    if case.init is not None:
+        cfg = cfg.model_copy(update={"init": case.init})
+    if case.iterations is not None and cfg.optim.iterations > case.iterations:
+        cfg = cfg.model_copy(update={"optim": cfg.optim.model_copy(update={"iterations": case.iterations})})
     return cfg
 
 
@@ -108,8 +213,10 @@ def run_case(case: BenchCase, methods: list[str], quick: bool) -> list[dict[str,
     for m in methods:
         t0 = time.perf_counter()
         try:
-            res = run(seq, method_config(m, quick, seq))
+            res = run(seq, case_config(case, m, quick, seq))
             row = {k: v for k, v in res.metrics.items() if isinstance(v, (int, float, str)) or v is None}
+            if case.suite in POSE_ERROR_SUITES and seq.poses is not None:
+                row.update(pose_metrics(seq.frames, res.poses, seq.poses))
             row["status"] = "ok"
         except Exception as exc:  # a failing method is a result, not a crash of the benchmark
             row = {"method": m, "status": f"failed: {type(exc).__name__}: {exc}", "ate": None, "point_l2": None}
@@ -136,13 +243,31 @@ def summarize(rows: list[dict[str, Any]], methods: list[str]) -> list[dict[str, 
                     "suite": suite,
                     "method": m,
                     "cases": len(sel),
-                    "mean_ate": float(np.nanmean([_num(r.get("ate")) for r in sel])),
-                    "mean_point_l2": float(np.nanmean([_num(r.get("point_l2")) for r in sel])),
-                    "mean_wall_seconds": float(np.nanmean([_num(r.get("wall_seconds")) for r in sel])),
+                    # None (JSON null), not NaN, when every case failed: bench.json stays valid JSON
+                    "mean_ate": _finite_mean([r.get("ate") for r in sel]),
+                    "mean_point_l2": _finite_mean([r.get("point_l2") for r in sel]),
+                    "mean_wall_seconds": _finite_mean([r.get("wall_seconds") for r in sel]),
                     "failed": sum(1 for r in sel if r["status"] != "ok"),
                 }
             )
+            if suite in POSE_ERROR_SUITES:
+                out[-1].update({f"mean_{key}": _finite_mean([r.get(key) for r in sel]) for key in POSE_KEYS})
     return out
+
+
+def _finite_mean(values: list[Any]) -> float | None:
+    """Mean of the finite numbers among ``values``; ``None`` when there is none (valid JSON)."""
+    nums = [v for v in map(_num, values) if math.isfinite(v)]
+    return float(np.mean(nums)) if nums else None
+
+
+POSE_KEYS = (
+    "rot_err_mean_deg",
+    "trans_err_mean",
+    "pair_rot_err_mean_deg",
+    "pair_trans_err_mean",
+    "point_l2_points",
+)
 
 
 def format_table(rows: list[dict[str, Any]], summary: list[dict[str, Any]], methods: list[str]) -> str:
@@ -169,9 +294,62 @@ def format_table(rows: list[dict[str, Any]], summary: list[dict[str, Any]], meth
             cells.append(
                 "-"
                 if s is None
-                else f"**{s['mean_ate']:.3g}** / {s['mean_point_l2']:.3g} / {s['mean_wall_seconds']:.3g}s"
+                else f"**{_num(s['mean_ate']):.3g}** / {_num(s['mean_point_l2']):.3g} / "
+                f"{_num(s['mean_wall_seconds']):.3g}s"
             )
         lines.append(f"| {suite} | **mean** | | " + " | ".join(cells) + " |")
+    pose = format_pose_table(rows, summary, methods)
+    return "\n".join(lines) + (f"\n\n{pose}" if pose else "")
+
+
+def format_pose_table(rows: list[dict[str, Any]], summary: list[dict[str, Any]], methods: list[str]) -> str:
+    """Markdown table of the real 3D suites (`POSE_ERROR_SUITES`, metres shown in mm).
+
+    Cells: ATE mm / pairwise rotation error deg / pairwise translation error mm / point L2 mm
+    (points aligned) / wall seconds; ``""`` when no row belongs to those suites.
+    """
+    sel = [r for r in rows if r["suite"] in POSE_ERROR_SUITES]
+    if not sel:
+        return ""
+
+    def mm(v: Any, unit: str) -> float:
+        return _num(v) * (1000.0 if unit == "m" else 1.0)
+
+    def cell(r: dict[str, Any] | None) -> str:
+        if r is None:
+            return "-"
+        if r.get("status", "ok") != "ok":
+            return "failed"
+        u = r.get("unit", "m")
+        return (
+            f"{mm(r.get('ate'), u):.3g} / {_num(r.get('pair_rot_err_mean_deg')):.3g}° / "
+            f"{mm(r.get('pair_trans_err_mean'), u):.3g} / {mm(r.get('point_l2_points'), u):.3g} / "
+            f"{_num(r.get('wall_seconds')):.3g}s"
+        )
+
+    lines = [
+        "Real 3D: ATE mm / pairwise rotation error (mean, deg) / pairwise translation error (mean, mm) / "
+        "point L2 mm (points aligned) / wall seconds",
+        "",
+        "| suite | case | " + " | ".join(methods) + " |",
+        "|" + "---|" * (2 + len(methods)),
+    ]
+    for suite, case in dict.fromkeys((r["suite"], r["case"]) for r in sel):
+        by_m = {r["method"]: r for r in sel if r["suite"] == suite and r["case"] == case}
+        lines.append(f"| {suite} | {case} | " + " | ".join(cell(by_m.get(m)) for m in methods) + " |")
+    for suite in dict.fromkeys(r["suite"] for r in sel):
+        by_s = {s["method"]: s for s in summary if s["suite"] == suite}
+        cells = []
+        for m in methods:
+            s = by_s.get(m)
+            cells.append(
+                "-"
+                if s is None
+                else f"**{1000 * _num(s['mean_ate']):.3g}** / {_num(s['mean_pair_rot_err_mean_deg']):.3g}° / "
+                f"{1000 * _num(s['mean_pair_trans_err_mean']):.3g} / {1000 * _num(s['mean_point_l2_points']):.3g} / "
+                f"{_num(s['mean_wall_seconds']):.3g}s"
+            )
+        lines.append(f"| {suite} | **mean** | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 

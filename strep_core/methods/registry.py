@@ -150,6 +150,15 @@ def initial_guess(seq: Sequence, config: RunConfig, ctx: RunContext, *, learned:
         if seq.poses is None:
             raise ConfigError(f"init 'ground_truth': sequence {seq.name!r} has no ground truth")
         return "ground_truth", seq.poses.copy()
+    if init == "fpfh":
+        # global alignment (FPFH + RANSAC, refined by ICP) for views far apart, from the base guess
+        from strep_core import globalreg
+
+        ctx.stage("init:fpfh")
+        _, start = base_guess(seq)
+        params = globalreg.resolve_global_params(seq, seed=config.seed, threads=config.classical.threads)
+        placed = globalreg.fpfh_poses(seq, start, params, on_frame=lambda k: ctx.check_cancel())
+        return "fpfh", placed.poses
     # a classical method as warm start, itself from the base guess
     ctx.stage(f"init:{init}")
     label, start = base_guess(seq)
