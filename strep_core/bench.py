@@ -17,11 +17,10 @@ Suites (``--suites``):
 
 On both real 3D suites learned methods run at most 100 iterations (`REAL3D_ITERATIONS`).
 
-The real 3D suites (`POSE_ERROR_SUITES`) add gauge-free errors to their rows (`pose_metrics`):
+The real 3D suites (`POSE_ERROR_SUITES`) get a second table in mm and degrees with the
+pairwise relative-pose errors (`strep_core.metrics.pairwise_errors`), which need no alignment:
 their reference trajectories barely translate (7-Scenes windows: a few cm; the bunny scans:
-all but four share one position), so the position-based rigid alignment of ATE leaves the
-rotation of ``rot_err_*`` and ``point_l2`` nearly free. A second table shows them in mm and
-degrees.
+all but four share one position), so only the map fixes a rigid alignment (as `point_l2` does).
 
 ``--quick`` shrinks every suite (fewer sequences, frames and iterations) to finish in minutes.
 """
@@ -152,41 +151,6 @@ SUITES: dict[str, Callable[[Path, bool], Iterator[BenchCase]]] = {
 POSE_ERROR_SUITES = ("sevenscenes", "bunny", "bunny+fpfh")  # row labels of the real 3D suites
 
 
-def pose_metrics(frames: list[np.ndarray], est: np.ndarray, gt: np.ndarray) -> dict[str, float]:
-    """Errors that need no alignment by positions (for trajectories that barely translate).
-
-    * ``pair_rot_err_*_deg``, ``pair_trans_err_*``: over every pair ``i < j``, the error
-      ``(G_i^-1 G_j)^-1 (E_i^-1 E_j)`` of the relative pose: its angle (degrees) and its
-      translation (sequence unit); invariant to any rigid motion of either trajectory.
-    * ``point_l2_points``: mean distance between each point placed by the estimate and by the
-      reference after the rigid alignment of those *points* (Umeyama on up to 2,000 points a
-      frame), where `strep_core.metrics.point_l2` aligns camera positions.
-
-    Args:
-        frames: ``K`` local point arrays ``(N_i, 3)``.
-        est, gt: ``(K, 4, 4)`` local -> world poses.
-    """
-    from strep_core import geometry as g
-    from strep_core.metrics import align_rigid
-
-    i, j = np.triu_indices(len(est), 1)
-    err = g.relative(g.relative(gt[i], gt[j]), g.relative(est[i], est[j]))
-    rot = np.degrees(g.rotation_angle(err))
-    trans = np.linalg.norm(g.translation(err), axis=-1)
-    pts = [f[:: max(1, int(np.ceil(len(f) / 2000)))] for f in frames]
-    p_est = np.concatenate([g.apply(e, p) for e, p in zip(est, pts, strict=True)])
-    p_gt = np.concatenate([g.apply(t, p) for t, p in zip(gt, pts, strict=True)])
-    rot_a, t_a = align_rigid(p_est, p_gt)
-    l2 = np.linalg.norm(p_est @ rot_a.T + t_a - p_gt, axis=1)
-    return {
-        "pair_rot_err_mean_deg": float(rot.mean()),
-        "pair_rot_err_max_deg": float(rot.max()),
-        "pair_trans_err_mean": float(trans.mean()),
-        "pair_trans_err_max": float(trans.max()),
-        "point_l2_points": float(l2.mean()),
-    }
-
-
 def method_config(method: str, quick: bool, seq: Sequence) -> RunConfig:
     """The config a method runs with in the benchmark: defaults, fewer iterations in quick mode."""
     cfg = RunConfig(method=method)
@@ -215,8 +179,6 @@ def run_case(case: BenchCase, methods: list[str], quick: bool) -> list[dict[str,
         try:
             res = run(seq, case_config(case, m, quick, seq))
             row = {k: v for k, v in res.metrics.items() if isinstance(v, (int, float, str)) or v is None}
-            if case.suite in POSE_ERROR_SUITES and seq.poses is not None:
-                row.update(pose_metrics(seq.frames, res.poses, seq.poses))
             row["status"] = "ok"
         except Exception as exc:  # a failing method is a result, not a crash of the benchmark
             row = {"method": m, "status": f"failed: {type(exc).__name__}: {exc}", "ate": None, "point_l2": None}
@@ -261,13 +223,7 @@ def _finite_mean(values: list[Any]) -> float | None:
     return float(np.mean(nums)) if nums else None
 
 
-POSE_KEYS = (
-    "rot_err_mean_deg",
-    "trans_err_mean",
-    "pair_rot_err_mean_deg",
-    "pair_trans_err_mean",
-    "point_l2_points",
-)
+POSE_KEYS = ("pair_rot_err_mean_deg", "pair_trans_err_mean")
 
 
 def format_table(rows: list[dict[str, Any]], summary: list[dict[str, Any]], methods: list[str]) -> str:
@@ -323,7 +279,7 @@ def format_pose_table(rows: list[dict[str, Any]], summary: list[dict[str, Any]],
         u = r.get("unit", "m")
         return (
             f"{mm(r.get('ate'), u):.3g} / {_num(r.get('pair_rot_err_mean_deg')):.3g}° / "
-            f"{mm(r.get('pair_trans_err_mean'), u):.3g} / {mm(r.get('point_l2_points'), u):.3g} / "
+            f"{mm(r.get('pair_trans_err_mean'), u):.3g} / {mm(r.get('point_l2'), u):.3g} / "
             f"{_num(r.get('wall_seconds')):.3g}s"
         )
 
@@ -346,7 +302,7 @@ def format_pose_table(rows: list[dict[str, Any]], summary: list[dict[str, Any]],
                 "-"
                 if s is None
                 else f"**{1000 * _num(s['mean_ate']):.3g}** / {_num(s['mean_pair_rot_err_mean_deg']):.3g}° / "
-                f"{1000 * _num(s['mean_pair_trans_err_mean']):.3g} / {1000 * _num(s['mean_point_l2_points']):.3g} / "
+                f"{1000 * _num(s['mean_pair_trans_err_mean']):.3g} / {1000 * _num(s['mean_point_l2']):.3g} / "
                 f"{_num(s['mean_wall_seconds']):.3g}s"
             )
         lines.append(f"| {suite} | **mean** | " + " | ".join(cells) + " |")

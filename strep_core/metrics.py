@@ -58,6 +58,12 @@ def ate(est_poses: np.ndarray, gt_poses: np.ndarray) -> float:
     return float(np.sqrt((diff**2).sum(-1).mean()))
 
 
+def _strided(points: np.ndarray, max_points: int | None) -> np.ndarray:
+    if max_points and len(points) > max_points:
+        return points[:: int(np.ceil(len(points) / max_points))]
+    return points
+
+
 def point_l2(
     frames: Seq[np.ndarray],
     est_poses: np.ndarray,
@@ -65,7 +71,14 @@ def point_l2(
     *,
     max_points_per_frame: int | None = 2000,
 ) -> float:
-    """Mean distance between each point placed by the aligned estimate and by ground truth.
+    """Point-wise L2 between the registered map and the ground-truth map.
+
+    Every point is placed once by the estimate and once by ground truth; the estimated map is
+    rigidly aligned onto the true one *using those point pairs* (Umeyama), then the mean
+    distance between each point's two placements is returned. Aligning on the points rather
+    than on camera positions keeps the figure meaningful when the trajectory barely moves
+    (a camera turning on the spot, views around an object), where a position-only alignment
+    leaves the rotation undetermined.
 
     Args:
         frames: ``K`` local point arrays ``(N_i, D)``.
@@ -73,15 +86,32 @@ def point_l2(
         max_points_per_frame: evenly strided subsample per frame to bound the cost
             (``None``: all points).
     """
-    est = aligned(est_poses, gt_poses)
-    total, count = 0.0, 0
-    for pts, te, tg in zip(frames, est, gt_poses, strict=True):
-        if max_points_per_frame and len(pts) > max_points_per_frame:
-            pts = pts[:: int(np.ceil(len(pts) / max_points_per_frame))]
-        d = np.linalg.norm(g.apply(te, pts) - g.apply(tg, pts), axis=1)
-        total += float(d.sum())
-        count += len(d)
-    return total / max(count, 1)
+    pts = [_strided(f, max_points_per_frame) for f in frames]
+    p_est = np.concatenate([g.apply(t, p) for t, p in zip(est_poses, pts, strict=True)])
+    p_gt = np.concatenate([g.apply(t, p) for t, p in zip(gt_poses, pts, strict=True)])
+    rot, t = align_rigid(p_est, p_gt)
+    return float(np.linalg.norm(p_est @ rot.T + t - p_gt, axis=1).mean())
+
+
+def pairwise_errors(est_poses: np.ndarray, gt_poses: np.ndarray, *, max_frames: int = 200) -> dict[str, float]:
+    """Errors of the relative pose between every pair of frames ``i < j``.
+
+    ``(G_i^-1 G_j)^-1 (E_i^-1 E_j)``: its angle (degrees) and translation (sequence unit);
+    invariant to any rigid motion of either trajectory, so it needs no alignment at all.
+    Sequences longer than ``max_frames`` use an evenly strided subset of frames.
+    """
+    idx = np.arange(len(est_poses))[:: int(np.ceil(len(est_poses) / max_frames))]
+    i, j = np.triu_indices(len(idx), 1)
+    i, j = idx[i], idx[j]
+    err = g.relative(g.relative(gt_poses[i], gt_poses[j]), g.relative(est_poses[i], est_poses[j]))
+    rot = np.degrees(g.rotation_angle(err))
+    trans = np.linalg.norm(g.translation(err), axis=-1)
+    return {
+        "pair_rot_err_mean_deg": float(rot.mean()),
+        "pair_rot_err_max_deg": float(rot.max()),
+        "pair_trans_err_mean": float(trans.mean()),
+        "pair_trans_err_max": float(trans.max()),
+    }
 
 
 def rpe(est_poses: np.ndarray, gt_poses: np.ndarray, *, delta: int = 1) -> dict[str, float]:
@@ -94,26 +124,9 @@ def rpe(est_poses: np.ndarray, gt_poses: np.ndarray, *, delta: int = 1) -> dict[
     return {"rpe_trans": float(np.sqrt((trans**2).mean())), "rpe_rot_deg": float(rot.mean())}
 
 
-def pose_errors(est_poses: np.ndarray, gt_poses: np.ndarray) -> dict[str, float]:
-    """Per-frame rotation and translation errors after the rigid alignment of `ate`.
-
-    Returns the mean and max rotation error in degrees and translation error in the unit,
-    after the rigid alignment used by `ate`.
-    """
-    err = g.relative(gt_poses, aligned(est_poses, gt_poses))
-    rot = np.degrees(g.rotation_angle(err))
-    trans = np.linalg.norm(g.translation(aligned(est_poses, gt_poses)) - g.translation(gt_poses), axis=-1)
-    return {
-        "rot_err_mean_deg": float(rot.mean()),
-        "rot_err_max_deg": float(rot.max()),
-        "trans_err_mean": float(trans.mean()),
-        "trans_err_max": float(trans.max()),
-    }
-
-
 def evaluate(frames: Seq[np.ndarray], est_poses: np.ndarray, gt_poses: np.ndarray) -> dict[str, float]:
     """All metrics of an estimate against ground truth, as a flat dict."""
     out = {"ate": ate(est_poses, gt_poses), "point_l2": point_l2(frames, est_poses, gt_poses)}
     out.update(rpe(est_poses, gt_poses))
-    out.update(pose_errors(est_poses, gt_poses))
+    out.update(pairwise_errors(est_poses, gt_poses))
     return out

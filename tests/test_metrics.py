@@ -46,18 +46,28 @@ def test_known_offset_gives_known_ate() -> None:
     assert metrics.point_l2(frames, est, gt) == pytest.approx(d, abs=1e-12)
 
 
-def test_rotation_error_moves_points_by_known_amount() -> None:
-    """A frame rotated by a in place: a point at radius r moves 2 r sin(a / 2)."""
-    k, a, r = 50, 0.1, 3.0
+def test_pairwise_errors_see_one_bad_frame() -> None:
+    """One frame rotated by a in place: every pair with it is off by a, the others by 0."""
+    k, a = 50, 0.1
     gt = g.identity(2, k)
     gt[:, 0, 2] = np.arange(k) * 10.0
     est = gt.copy()
     est[k // 2] = est[k // 2] @ g.se2_from_xytheta(np.array([0.0, 0.0, a]))
-    frames = [np.array([[r, 0.0]])] * k
     assert metrics.ate(est, gt) == pytest.approx(0.0, abs=1e-9)
-    assert metrics.point_l2(frames, est, gt) == pytest.approx(2 * r * np.sin(a / 2) / k, rel=1e-9)
-    errs = metrics.pose_errors(est, gt)
-    assert errs["rot_err_max_deg"] == pytest.approx(np.degrees(a), rel=1e-9)
+    errs = metrics.pairwise_errors(est, gt)
+    assert errs["pair_rot_err_max_deg"] == pytest.approx(np.degrees(a), rel=1e-9)
+    pairs = k * (k - 1) / 2
+    assert errs["pair_rot_err_mean_deg"] == pytest.approx(np.degrees(a) * (k - 1) / pairs, rel=1e-9)
+
+
+def test_point_l2_aligns_on_points_when_positions_do_not_fix_rotation() -> None:
+    """A camera turning on the spot: positions are all equal, so only the points fix the alignment."""
+    k = 8
+    gt = g.se2_from_xytheta(np.stack([np.zeros(k), np.zeros(k), np.linspace(0, 2, k)], 1))
+    motion = g.se2_from_xytheta(np.array([3.0, -1.0, 0.7]))
+    est = motion[None] @ gt
+    frames = [np.random.default_rng(i).normal(size=(30, 2)) + np.array([5.0, 0.0]) for i in range(k)]
+    assert metrics.point_l2(frames, est, gt) < 1e-9
 
 
 def test_align_rigid_recovers_motion_and_is_proper() -> None:
