@@ -44,6 +44,8 @@ class HealthPublic(BaseModel):
     jobs_queued: int
     max_concurrent_jobs: int
     methods: list[str]
+    viewer_port: int | None = Field(default=None, description="port of the live 3D viewer; null when disabled")
+    viewer_url: str | None = Field(default=None, description="address of the live 3D viewer; null when disabled")
 
 
 class MethodPublic(BaseModel):
@@ -149,3 +151,19 @@ class ComparisonPublic(BaseModel):
     created_at: datetime
     status: JobStatus = Field(description="running while any job is queued or running; else the worst outcome")
     jobs: list[JobPublic]
+    files: list[str] = Field(
+        default_factory=list,
+        description="names for GET /api/comparisons/{id}/files/{name}: recording.rrd (all methods side by side) "
+        "once written, shortly after the last job finished",
+    )
+
+
+COMPARISON_FILES: dict[str, str] = {"recording.rrd": "recording.rrd"}
+
+
+class ViewPublic(BaseModel):
+    """What the live 3D viewer shows after a ``view`` request."""
+
+    viewer_url: str = Field(description="address of the 3D viewer")
+    group: str = Field(description="the run shown: the comparison id, or the job id of a job alone")
+    jobs: list[str] = Field(description="the jobs drawn side by side")

@@ -8,7 +8,7 @@ const token = new URLSearchParams(location.search).get("token") || sessionStorag
 if (token) sessionStorage.setItem("strep-token", token);
 
 const $ = (sel) => document.querySelector(sel);
-const state = { jobs: new Map(), follow: new Set(), methods: [], sequences: [], comparison: null };
+const state = { jobs: new Map(), follow: new Set(), methods: [], sequences: [], comparison: null, viewer: null };
 
 function headers(extra = {}) {
   return token ? { ...extra, Authorization: `Bearer ${token}` } : extra;
@@ -31,11 +31,29 @@ function fmt(v, digits = 3) {
   return typeof v === "number" && isFinite(v) ? v.toPrecision(digits) : "–";
 }
 
+// Text from the service (names, errors, uploaded file names) goes into HTML only through this.
+function esc(value) {
+  return String(value ?? "").replace(/[&<>"']/g, (c) => `&#${c.charCodeAt(0)};`);
+}
+
 // ---- charts ---------------------------------------------------------------------------------
 
-function drawChart(canvas, series, { log = false } = {}) {
+// Size a canvas's pixels to its box on screen (sharp on any display); returns its context and CSS size.
+function fitCanvas(canvas) {
+  const dpr = window.devicePixelRatio || 1;
+  const W = canvas.clientWidth || canvas.width, H = canvas.clientHeight || canvas.height;
+  if (canvas.width !== Math.round(W * dpr) || canvas.height !== Math.round(H * dpr)) {
+    canvas.width = Math.round(W * dpr);
+    canvas.height = Math.round(H * dpr);
+  }
   const ctx = canvas.getContext("2d");
-  const W = canvas.width, H = canvas.height, L = 52, R = 10, T = 10, B = 26;
+  ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
+  return { ctx, W, H };
+}
+
+function drawChart(canvas, series, { log = false } = {}) {
+  const { ctx, W, H } = fitCanvas(canvas);
+  const L = 52, R = 10, T = 10, B = 26;
   ctx.clearRect(0, 0, W, H);
   const pts = series.flatMap((s) => s.points).filter(([, y]) => isFinite(y) && (!log || y > 0));
   ctx.font = "11px system-ui, sans-serif";
@@ -60,21 +78,24 @@ function drawChart(canvas, series, { log = false } = {}) {
   }
   ctx.fillText(String(Math.round(x0)), L, H - 8);
   ctx.fillText(`${Math.round(x1)} iterations`, W - R - 80, H - 8);
-  for (const s of series) {
+  // earlier series wider, so a curve that another one covers still shows at its edges
+  series.forEach((s, i) => {
     const p = s.points.filter(([, y]) => isFinite(y) && (!log || y > 0));
-    if (!p.length) continue;
+    if (!p.length) return;
     ctx.strokeStyle = s.color;
-    ctx.lineWidth = 2;
+    ctx.lineWidth = Math.max(1.5, 2 + 1.5 * (series.length - 1 - i));
     ctx.beginPath();
-    p.forEach(([x, y], i) => (i ? ctx.lineTo(px(x), py(y)) : ctx.moveTo(px(x), py(y))));
+    p.forEach(([x, y], k) => (k ? ctx.lineTo(px(x), py(y)) : ctx.moveTo(px(x), py(y))));
     ctx.stroke();
-  }
+  });
 }
 
 function redraw() {
   const jobs = [...state.follow].map((id) => state.jobs.get(id)).filter(Boolean);
   drawChart($("#loss-chart"), jobs.map((j) => ({ color: j.color, points: j.loss })), { log: true });
   drawChart($("#ate-chart"), jobs.map((j) => ({ color: j.color, points: j.ate })));
+  const unit = jobs.map((j) => j.metrics?.unit || j.unit).find(Boolean);
+  $("#ate-caption").textContent = unit ? `ATE (${unit})` : "ATE";
   const body = $("#results tbody");
   body.innerHTML = "";
   for (const j of jobs) {
@@ -84,19 +105,44 @@ function redraw() {
     const files = j.status === "succeeded"
       ? ["recording.rrd", "trajectory.tum", "map.ply", "metrics.json"]
           .filter((f) => !j.files || j.files.includes(f))
-          .map((f) => `<a href="/api/jobs/${j.id}/files/${f}" download>${f.split(".").pop()}</a>`).join("")
+          .map((f) => `<a href="/api/jobs/${j.id}/files/${f}" download title="${f}">${f.split(".").pop()}</a>`).join("")
       : j.status === "running" || j.status === "queued"
         ? `<a href="#" data-cancel="${j.id}">cancel</a>` : "";
-    const unit = m.unit ? ` ${m.unit}` : "";
-    tr.innerHTML = `<td><span class="swatch" style="background:${j.color}"></span>${j.method}</td>
-      <td class="status-${j.status}" title="${j.error || ""}">${j.status}</td>
+    const unit = m.unit ? ` ${esc(m.unit)}` : "";
+    tr.innerHTML = `<td><span class="swatch" style="background:${j.color}"></span>${esc(j.method)}</td>
+      <td class="status status-${j.status}" title="${esc(j.error)}">${j.status}</td>
       <td class="num">${j.iteration ?? "–"}${j.total ? " / " + j.total : ""}</td>
       <td class="num ate">${fmt(m.ate ?? j.lastAte)}${m.ate != null || j.lastAte != null ? unit : ""}</td>
       <td class="num">${fmt(m.point_l2)}${m.point_l2 != null ? unit : ""}</td>
       <td class="num">${fmt(m.wall_seconds ?? j.elapsed, 3)}</td>
-      <td>${files}</td>`;
+      <td class="links">${files}</td>`;
     body.appendChild(tr);
   }
+  showActions(jobs);
+}
+
+// The run's links: the 3D viewer (shows this run there) and the comparison's recording.
+function showActions(jobs) {
+  const view = $("#view-3d"), rrd = $("#comparison-rrd");
+  const started = jobs.some((j) => j.status !== "queued");
+  view.hidden = !state.viewer || !jobs.length;
+  view.classList.toggle("disabled", !started);
+  view.dataset.view = state.comparison ? `comparisons/${state.comparison}` : jobs.length ? `jobs/${jobs[0].id}` : "";
+  rrd.hidden = !state.comparisonFiles?.includes("recording.rrd");
+  if (!rrd.hidden) rrd.href = `/api/comparisons/${state.comparison}/files/recording.rrd`;
+}
+
+// The comparison's recording is written shortly after its last job finishes: ask until it is there.
+async function fetchComparisonFiles(id) {
+  for (let i = 0; i < 20 && state.comparison === id; i++) {
+    const cmp = await api(`/api/comparisons/${id}`).catch(() => null);
+    if (!cmp || cmp.files.length || !FINAL.has(cmp.status)) {
+      if (cmp && state.comparison === id) state.comparisonFiles = cmp.files;
+      break;
+    }
+    await new Promise((r) => setTimeout(r, 1000));
+  }
+  scheduleRedraw();
 }
 
 // ---- Server-Sent Events over fetch (so the token header can be sent) ------------------------
@@ -138,6 +184,8 @@ async function follow(job) {
   if (fresh) Object.assign(entry, { status: fresh.status, metrics: fresh.metrics, files: fresh.files, error: fresh.error });
   redraw();
   loadJobs();
+  const followed = [...state.follow].map((id) => state.jobs.get(id));
+  if (state.comparison && followed.every((j) => j && FINAL.has(j.status))) fetchComparisonFiles(state.comparison);
 }
 
 function handleMessage(entry, block) {
@@ -158,6 +206,7 @@ function handleMessage(entry, block) {
     if (ev.ate != null) { entry.ate.push([ev.iteration, ev.ate]); entry.lastAte = ev.ate; }
   } else if (kind === "start") {
     entry.total = ev.total_iterations;
+    entry.unit = ev.unit;
   } else if (kind === "result") {
     entry.metrics = ev.metrics;
   } else if (kind === "status") {
@@ -181,7 +230,7 @@ async function loadSequences(selectId) {
   state.sequences = data;
   const sel = $("#sequence");
   sel.innerHTML = data
-    .map((s) => `<option value="${s.id}">${s.name} (${s.dims}D, ${s.frames} frames${s.source === "upload" ? ", uploaded" : ""})</option>`)
+    .map((s) => `<option value="${esc(s.id)}">${esc(s.name)} (${s.dims}D, ${s.frames} frames${s.source === "upload" ? ", uploaded" : ""})</option>`)
     .join("");
   if (selectId) sel.value = selectId;
   showSequence();
@@ -198,8 +247,8 @@ async function loadMethods() {
   const { data } = await api("/api/methods");
   state.methods = data;
   $("#methods").innerHTML = data
-    .map((m) => `<label title="${m.description}"><input type="checkbox" value="${m.name}"
-      ${m.name === "strep" || m.name === "strep-nolink" ? "checked" : ""}> ${m.name}</label>`)
+    .map((m) => `<label title="${esc(m.description)}"><input type="checkbox" value="${esc(m.name)}"
+      ${m.name === "strep" || m.name === "strep-nolink" ? "checked" : ""}> ${esc(m.name)}</label>`)
     .join("");
 }
 
@@ -207,12 +256,14 @@ async function start() {
   const methods = [...document.querySelectorAll("#methods input:checked")].map((i) => i.value);
   if (!methods.length) return say("choose at least one method", true);
   const iterations = Number($("#iterations").value);
+  // about 60 points per curve: an event (losses, poses, ATE) every few iterations
+  const optim = { iterations, event_interval: Math.max(1, Math.ceil(iterations / 60)) };
   $("#start").disabled = true;
   try {
     const cmp = await api("/api/comparisons", {
       method: "POST",
       headers: { "Content-Type": "application/json" },
-      body: JSON.stringify({ sequence_id: $("#sequence").value, methods, config: { optim: { iterations } } }),
+      body: JSON.stringify({ sequence_id: $("#sequence").value, methods, config: { optim } }),
     });
     say(`comparison ${cmp.id} started`);
     showComparison(cmp);
@@ -226,7 +277,8 @@ async function start() {
 function showComparison(cmp) {
   state.follow.clear();
   state.comparison = cmp.id;
-  $("#live-title").textContent = `Live: ${cmp.sequence_id} — ${cmp.methods.join(" vs ")}`;
+  state.comparisonFiles = cmp.files || [];
+  $("#live-title").textContent = `${cmp.sequence_id}: ${cmp.methods.join(" vs ")}`;
   for (const job of cmp.jobs || []) {
     state.jobs.delete(job.id);
     follow(job);
@@ -261,10 +313,10 @@ async function loadJobs() {
   const { data } = await api("/api/jobs?limit=50").catch(() => ({ data: [] }));
   const body = $("#jobs tbody");
   body.innerHTML = data
-    .map((j) => `<tr><td>${new Date(j.created_at).toLocaleString()}</td><td>${j.sequence_id}</td><td>${j.method}</td>
-      <td class="status-${j.status}" title="${j.error || ""}">${j.status}</td>
-      <td class="num">${fmt(j.metrics?.ate)}</td><td>${j.comparison_id || ""}</td>
-      <td><a href="#" data-open="${j.comparison_id ? "c:" + j.comparison_id : "j:" + j.id}">open</a></td></tr>`)
+    .map((j) => `<tr><td>${new Date(j.created_at).toLocaleString()}</td><td>${esc(j.sequence_id)}</td><td>${esc(j.method)}</td>
+      <td class="status status-${j.status}" title="${esc(j.error)}">${j.status}</td>
+      <td class="num">${fmt(j.metrics?.ate)}</td><td class="id">${esc(j.comparison_id || "")}</td>
+      <td class="links"><a href="#" data-open="${j.comparison_id ? "c:" + j.comparison_id : "j:" + j.id}">open</a></td></tr>`)
     .join("");
 }
 
@@ -280,6 +332,11 @@ async function openEntry(key) {
 document.addEventListener("click", async (ev) => {
   const t = ev.target;
   if (t.dataset?.open) { ev.preventDefault(); openEntry(t.dataset.open).catch((e) => say(e.message, true)); }
+  if (t.dataset?.view) {
+    // the link opens the viewer in its tab; the viewer (shared by all its tabs) switches to this run
+    if (t.classList.contains("disabled")) { ev.preventDefault(); return; }
+    api(`/api/${t.dataset.view}/view`, { method: "POST" }).catch((e) => say(`3D viewer: ${e.message}`, true));
+  }
   if (t.dataset?.cancel) {
     ev.preventDefault();
     await api(`/api/jobs/${t.dataset.cancel}`, { method: "DELETE" }).catch((e) => say(e.message, true));
@@ -288,14 +345,17 @@ document.addEventListener("click", async (ev) => {
 
 async function init() {
   $("#start").addEventListener("click", start);
+  window.addEventListener("resize", scheduleRedraw);
   $("#upload-form").addEventListener("submit", upload);
   $("#sequence").addEventListener("change", showSequence);
   try {
     const health = await api("/api/health");
-    const port = health.viewer_port || 8080;
-    const link = $("#viewer-link");
-    link.href = health.viewer_url || `${location.protocol}//${location.hostname}:${port}/`;
-    if (health.viewer_port === null) link.style.display = "none";
+    // the viewer listens on the API's host: reach it through the name this page was loaded from
+    state.viewer = health.viewer_port ? `${location.protocol}//${location.hostname}:${health.viewer_port}/` : null;
+    for (const link of [$("#viewer-link"), $("#view-3d")]) {
+      if (state.viewer) link.href = state.viewer;
+      else link.hidden = true;
+    }
     await Promise.all([loadSequences(), loadMethods(), loadJobs()]);
     redraw();
   } catch (err) {

@@ -113,7 +113,21 @@ def cmd_run(args: argparse.Namespace) -> int:
     out_dir = Path(args.out)
     sink = _ProgressSink(enabled=(not args.quiet and sys.stderr.isatty()) or args.progress)
     try:
-        result = run_input(args.input, config, out_dir=out_dir, sink=sink)
+        if args.rrd is None:
+            result = run_input(args.input, config, out_dir=out_dir, sink=sink)
+        else:  # the recorder needs the sequence before the run: the steps of run_input, with it
+            import uuid
+
+            from app.recording import cli_sink  # the Rerun sink lives in app/, imported only when asked
+            from strep_core.events import MultiSink
+            from strep_core.methods import run
+            from strep_core.pipeline import load_input, write_outputs
+
+            seq = load_input(args.input, frames=config.frames)
+            with cli_sink(args.rrd, seq, config.method, f"cli-{uuid.uuid4().hex[:12]}") as rrd:
+                result = run(seq, config.model_copy(update={"frames": None}), sink=MultiSink([sink, rrd]))
+            result.config = config
+            write_outputs(result, out_dir)
     finally:
         sink.close()
     m = result.metrics
@@ -122,6 +136,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         f"{m['method']} on {m['sequence']}: {m['frames']} frames, ATE {_fmt(m['ate'], unit)}, "
         f"point L2 {_fmt(m['point_l2'], unit)}, {m['wall_seconds']:.1f} s "
         f"(init: {m['initial_guess']}, ATE {_fmt(m.get('initial_ate'), unit)}) -> {out_dir}"
+        + (f", {args.rrd}" if args.rrd is not None else "")
     )
     return 0
 
@@ -204,7 +219,7 @@ def make_parser() -> argparse.ArgumentParser:
     run.add_argument("--iterations", type=int, help="optimiser iterations (learned methods)")
     run.add_argument(
         "--init",
-        choices=["auto", "identity", "odometry", "ground_truth", "icp", "multiway", "kiss"],
+        choices=["auto", "identity", "odometry", "ground_truth", "icp", "multiway", "kiss", "fpfh"],
         help="initial guess (auto: odometry if present else identity; learned methods add an ICP warm start)",
     )
     run.add_argument("--device", choices=["cpu", "cuda", "auto"])
@@ -215,6 +230,7 @@ def make_parser() -> argparse.ArgumentParser:
     run.add_argument("--freeze", action="store_true", help="with --from-model: re-optimise only the latents")
     run.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     run.add_argument("--progress", action="store_true", help="progress bar even when stderr is not a terminal")
+    run.add_argument("--rrd", type=Path, metavar="FILE", help="also record the run into a Rerun recording (.rrd)")
     run.set_defaults(fn=cmd_run)
 
     gen = sub.add_parser("generate", help="simulate a sequence (2D lidar or 3D depth)")

@@ -10,6 +10,10 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("STREP_SHARED_DATA", ROOT.parent / "shared" / "data"))
 
+# Services started by the tests (and the servers they spawn) run without the 3D viewer unless a
+# test enables it: no viser server on port 8080 per TestClient.
+os.environ.setdefault("STREP_VIEWER_ENABLED", "false")
+
 
 @pytest.fixture(scope="session")
 def shared_data() -> Path:

@@ -61,7 +61,15 @@ class Settings(BaseSettings):
     cors_origins: Annotated[list[str], NoDecode] = Field(
         default_factory=list, description="origins allowed by CORS (comma-separated or JSON); none by default"
     )
-    viewer_port: int = Field(default=8080, ge=0, le=65535, description="reserved for the 3D viewer")
+    viewer_enabled: bool = Field(
+        default=True, description="serve the live 3D viewer (viser) beside the API, on the same host"
+    )
+    viewer_port: int = Field(
+        default=8080,
+        ge=0,
+        le=65535,
+        description="port of the 3D viewer; when taken, the next free one (see /api/health); 0: any free port",
+    )
     cancel_grace_seconds: float = Field(
         default=5.0, gt=0, le=600, description="after a cancel, a worker still running this long is terminated"
     )

@@ -1,4 +1,9 @@
-"""The service behind the API: store, sequences, jobs and event fan-out, opened together."""
+"""The service behind the API: store, sequences, jobs, event fan-out and viewers, opened together.
+
+Every stored job event goes through one `Broadcaster`: to the SSE streams, to the comparison
+recordings (`ComparisonRecordings`) and, when the 3D viewer is enabled, to its feed
+(`LiveFeed` -> `app.viewer.ViewerServer`).
+"""
 
 from __future__ import annotations
 
@@ -6,13 +11,19 @@ import logging
 import multiprocessing
 import os
 from pathlib import Path
-from typing import IO
+from typing import IO, TYPE_CHECKING
 
-from app.core.config import Settings
+from app.core.config import Settings, is_loopback
 from app.services.events import Broadcaster
 from app.services.jobs import JobService
+from app.services.live import LiveFeed
+from app.services.loader import SequenceLoader
+from app.services.recordings import ComparisonRecordings
 from app.services.sequences import SequenceService
 from app.store import Store
+
+if TYPE_CHECKING:
+    from app.viewer.server import ViewerServer
 
 log = logging.getLogger("strep.service")
 
@@ -54,15 +65,44 @@ class Service:
         self.broadcaster = Broadcaster()
         self.sequences = SequenceService(settings, self.store, self.ctx)
         self.jobs = JobService(settings, self.store, self.broadcaster, self.sequences, self.ctx)
+        self.loader = SequenceLoader(self.sequences, settings.max_inflated_bytes)
+        self.recordings = ComparisonRecordings(settings, self.store, self.loader)
+        self.broadcaster.listen(self.recordings.on_events)
+        self.viewer: ViewerServer | None = None
+        self.live: LiveFeed | None = None
 
     def start(self) -> None:
+        from app.recording import disable_rerun_telemetry
+
+        disable_rerun_telemetry()  # here and in the workers (they inherit the environment)
         self.sequences.clean()
         self.settings.results_dir.mkdir(parents=True, exist_ok=True)
+        if self.settings.viewer_enabled:
+            self._start_viewer()
         self.jobs.start()
+
+    def _start_viewer(self) -> None:
+        """The live 3D viewer, on the API's host; viser takes the next port when one is busy."""
+        from app.viewer import ViewerServer
+
+        if not is_loopback(self.settings.host):
+            log.warning(
+                "the 3D viewer on %s has no authentication: anyone who reaches it sees the runs", self.settings.host
+            )
+        self.viewer = ViewerServer(host=self.settings.host, port=self.settings.viewer_port)
+        self.live = LiveFeed(self.viewer, self.store, self.loader)
+        self.live.start()
+        self.broadcaster.listen(self.live.publish)
+        log.info("3D viewer at %s", self.viewer.url)
 
     def close(self) -> None:
         try:
             self.jobs.close()
+            if self.live is not None:
+                self.live.close()
+            self.recordings.close()
+            if self.viewer is not None:
+                self.viewer.close()  # frees its port
             self.broadcaster.close()
             self.sequences.close()
             self.store.close()

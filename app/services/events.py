@@ -6,17 +6,23 @@ and never grows without bound: when a subscriber falls behind, older ``iteration
 are dropped and only the latest is kept (statuses, stages and results are always kept). The
 stored log stays complete, so a client that missed events can replay them with
 ``Last-Event-ID``.
+
+Listeners (`Broadcaster.listen`) get every published batch of every job: the 3D viewer's feed
+and the comparison recordings. They run on the publishing thread and only queue the events.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import threading
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 
 from app.store import StoredEvent
+
+log = logging.getLogger("strep.service")
 
 MAILBOX_LIMIT = 64  # pending events per subscriber before iteration events are coalesced
 
@@ -89,12 +95,23 @@ class Mailbox:
 
 
 class Broadcaster:
-    """Subscribers by job id. `publish` is called from the supervisor thread."""
+    """Subscribers by job id, and listeners of every job. `publish` is called from the
+    supervisor thread (and from API threads for queued and cancelled-while-queued jobs)."""
 
     def __init__(self) -> None:
         self._subs: dict[str, set[Mailbox]] = {}
+        self._listeners: list[Callable[[list[StoredEvent]], None]] = []
         self._lock = threading.Lock()
         self._closed = False
+
+    def listen(self, listener: Callable[[list[StoredEvent]], None]) -> None:
+        """Also hand every published batch to ``listener`` (the viewer feed, recordings).
+
+        It runs on the publishing thread, so it must only take the events and return (queue
+        them); an exception it raises is logged and ignored.
+        """
+        with self._lock:
+            self._listeners.append(listener)
 
     def subscribe(self, job_id: str, *, limit: int = MAILBOX_LIMIT) -> Mailbox:
         box = Mailbox(asyncio.get_running_loop(), job_id, limit=limit)
@@ -114,14 +131,23 @@ class Broadcaster:
                     del self._subs[box.job_id]
 
     def publish(self, events: Iterable[StoredEvent]) -> None:
+        events = list(events)
         by_job: dict[str, list[StoredEvent]] = {}
         for ev in events:
             by_job.setdefault(ev.job_id, []).append(ev)
         with self._lock:
             targets = [(list(self._subs.get(job, ())), evs) for job, evs in by_job.items()]
+            listeners = list(self._listeners)
         for boxes, evs in targets:
             for box in boxes:
                 box.push(evs)
+        if not events:
+            return
+        for listener in listeners:
+            try:
+                listener(events)
+            except Exception:
+                log.exception("event listener %r failed", listener)
 
     def subscriber_count(self, job_id: str | None = None) -> int:
         with self._lock:

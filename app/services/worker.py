@@ -1,9 +1,10 @@
 """Code that runs in child processes (started with the ``spawn`` context).
 
 * `run_job`: one process per job. Loads the input, runs the method with a sink that sends
-  every event through the job's pipe, writes the result files into a temporary folder and
-  renames it into place, then sends a final ``done`` message. The cancel flag is a
-  ``multiprocessing.Event`` the core checks between iterations.
+  every event through the job's pipe and a `app.recording.RerunRecorder` that records them
+  into ``recording.rrd`` (recording id = job id), writes the other result files into the
+  same temporary folder and renames it into place, then sends a final ``done`` message. The
+  cancel flag is a ``multiprocessing.Event`` the core checks between iterations.
 * `reader_loop`: a long-lived process that reads uploads to validate them, so a reader that
   crashes or runs away never takes the service with it.
 
@@ -33,6 +34,7 @@ import traceback
 from pathlib import Path
 from typing import Any
 
+RECORDING = "recording.rrd"
 THREAD_ENV = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
 
 
@@ -120,6 +122,54 @@ def load_source(source: str, selection: str | None, max_extract_bytes: int) -> A
     return load_sequence(source, frames=selection, max_extract_bytes=max_extract_bytes)
 
 
+def open_recorder(path: Path, job_id: str, seq: Any, config: Any) -> Any:
+    """The job's Rerun recorder (a sink), or ``None`` when it cannot be opened.
+
+    A recording is a by-product: failing to open one is written to the job's log and the job
+    runs on without it. ``seq`` is the sequence as loaded; the recorder gets the frames the
+    run registers (``config.frames`` applied, as `strep_core.methods.run` does).
+    """
+    try:
+        from app.recording import RerunRecorder, disable_rerun_telemetry
+
+        disable_rerun_telemetry()
+        frames = seq.select(config.frames) if config.frames else seq
+        return RerunRecorder(path, recording_id=job_id, sequence=frames, label=config.method)
+    except Exception:
+        print("recording.rrd cannot be written:", file=sys.stderr)
+        traceback.print_exc()
+        return None
+
+
+class GuardedSink:
+    """Forwards events to a sink that must never fail the run: its first error is logged, then
+    it gets no more events."""
+
+    def __init__(self, sink: Any) -> None:
+        self.sink = sink
+        self.broken = False
+
+    def emit(self, event: Any) -> None:
+        if self.broken:
+            return
+        try:
+            self.sink.emit(event)
+        except Exception:
+            self.broken = True
+            traceback.print_exc()
+
+
+def close_recorder(recorder: Any) -> None:
+    """Close a recorder; a recording that cannot be finished is dropped (logged), never fatal."""
+    try:
+        recorder.close(discard=bool(recorder.failed))
+    except Exception:
+        traceback.print_exc()
+        with contextlib.suppress(Exception):
+            recorder.close(discard=True)
+        Path(recorder.tmp_path).unlink(missing_ok=True)
+
+
 def run_job(spec: dict[str, Any], conn: multiprocessing.connection.Connection, cancel: Any) -> None:
     """Entry point of a job's process. ``spec`` is built by `app.services.jobs.JobService`."""
     _watch_parent()
@@ -133,6 +183,7 @@ def run_job(spec: dict[str, Any], conn: multiprocessing.connection.Connection, c
         _import_plugins(spec.get("plugins", []))
         from strep_core.config import RunConfig
         from strep_core.errors import Cancelled, StrepError
+        from strep_core.events import MultiSink
         from strep_core.methods import run
         from strep_core.pipeline import write_outputs
 
@@ -141,13 +192,20 @@ def run_job(spec: dict[str, Any], conn: multiprocessing.connection.Connection, c
             if config.threads is None:
                 config = config.model_copy(update={"threads": spec["threads"]})
             seq = load_source(spec["source"], spec.get("selection"), spec["max_extract_bytes"])
-            result = run(seq, config, sink=PipeSink(conn), cancel=cancel)
             if tmp_dir.exists():
                 shutil.rmtree(tmp_dir)
-            files = write_outputs(result, tmp_dir)
+            tmp_dir.mkdir(parents=True)
+            recorder = open_recorder(tmp_dir / RECORDING, spec["job_id"], seq, config)
+            sink = PipeSink(conn) if recorder is None else MultiSink([PipeSink(conn), GuardedSink(recorder)])
+            try:
+                result = run(seq, config, sink=sink, cancel=cancel)
+            finally:
+                if recorder is not None:
+                    close_recorder(recorder)  # normally closed already by the ResultEvent
+            files = sorted({*write_outputs(result, tmp_dir), *([RECORDING] if (tmp_dir / RECORDING).is_file() else [])})
             os.replace(tmp_dir, out_dir)  # all files appear at once, never half-written
             metrics = _finite(result.metrics)
-            message = ("done", "succeeded", None, metrics, sorted(files))
+            message = ("done", "succeeded", None, metrics, files)
         except Cancelled as exc:
             message = ("done", "cancelled", str(exc) or "cancelled", None, [])
         except StrepError as exc:

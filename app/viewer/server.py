@@ -25,7 +25,8 @@ GUI (shared by all tabs: one presenter, everybody sees the same; per-tab state w
 per-client scenes and multiply the traffic): the run (job or comparison) to show, follow
 live, play/pause, an iteration slider over the recorded history, ground truth on/off, a
 point-size factor, and per job a folder with its current figures and a uPlot chart of its
-loss terms and ATE.
+loss terms and ATE. The control panel is docked on the right, beside the scene; the camera is
+framed on the shown run with clip planes scaled to it.
 """
 
 from __future__ import annotations
@@ -66,6 +67,22 @@ GT_COLOR = (120, 120, 120)
 TRAJECTORY_COLORS = [(230, 80, 40), (40, 120, 230), (40, 170, 90), (170, 70, 200), (220, 170, 30)]
 CHART_INTERVAL = 0.5  # seconds between chart updates of a job (its text follows every push)
 CURVE_COLORS = ["#e6502a", "#2878e6", "#28aa5a", "#aa46c8", "#dcaa1e", "#555555"]
+
+
+def camera_pose(box: tuple[np.ndarray, np.ndarray], *, fov: float, aspect: float) -> tuple[np.ndarray, np.ndarray]:
+    """Camera ``(position, look_at)`` that shows ``box`` (world, z up) from above, slightly
+    tilted, filling most of a view of vertical field of view ``fov`` (radians) and ``aspect``
+    (width / height); it looks at the middle of the box."""
+    lo, hi = np.asarray(box[0], np.float64), np.asarray(box[1], np.float64)
+    center, extent = (lo + hi) / 2.0, hi - lo
+    tan_v = math.tan(fov / 2.0)
+    distance = max(
+        float(extent[0]) / (2.0 * tan_v * aspect * 0.85),  # width across the view
+        float(max(extent[1], extent[2])) / (2.0 * tan_v * 0.8),  # depth and height up the view
+        1e-6,
+    )
+    direction = np.array([0.0, -0.3, 1.0]) / math.hypot(0.3, 1.0)
+    return center + distance * direction, center
 
 
 @dataclass
@@ -470,7 +487,8 @@ class ViewerServer:
     # ---- GUI (callbacks run on viser's threads: they only change state) -------------------
     def _build_gui(self) -> None:
         gui = self.server.gui
-        gui.configure_theme(control_width="large")
+        gui.configure_theme(control_width="large", show_share_button=False)
+        gui.main_panel.dock_right()  # beside the scene, not over it (the camera frames the rest)
         self._gui_run = gui.add_dropdown("Run", (NO_RUN,), initial_value=NO_RUN)
         self._gui_live = gui.add_checkbox("Follow live", initial_value=True)
         self._gui_play = gui.add_button_group("Replay", ("Play", "Pause"))
@@ -596,7 +614,7 @@ class ViewerServer:
                 self._last_play_step = now
                 self._replay_it = self._next_replay_iteration()
             ui_rev = self._ui_rev
-            ui = {
+            ui: dict[str, Any] = {
                 "groups": {g: list(m) for g, m in self._groups.items()},
                 "titles": dict(self._group_titles),
                 "selected": self._selected,
@@ -639,6 +657,7 @@ class ViewerServer:
             for group in layout:
                 self._layout(group)
             if pushes and ui["live"]:
+                self._gui_iter.max = max(int(ui["max_it"]), 1)  # totals become known after the job appears
                 _set_value(self._gui_iter, min(self._latest_iteration(), self._gui_iter.max))
         with self._lock:
             self._ui_applied = ui_rev
@@ -801,15 +820,26 @@ class ViewerServer:
             lo, hi = self._box_of(job)
             box = union_bbox(box, (lo + job.offset, hi + job.offset))
         assert box is not None
-        center = (box[0] + box[1]) / 2.0
         size = float(max(np.max(box[1] - box[0]), 1e-6))
-        position = center + np.array([0.0, -0.35 * size, 1.1 * size])
+        # clip planes scaled to the scene: viser's default far plane (1000) hides maps in pixels
+        near, far = max(1e-3, 1e-4 * size), max(1000.0, 20.0 * size)
+        camera = self.server.initial_camera
+        position, look_at = camera_pose(box, fov=camera.fov, aspect=4 / 3)
+        camera.near, camera.far = near, far
         # position first: viser's camera position setter drags look_at along with it
-        self.server.initial_camera.position = tuple(position)
-        self.server.initial_camera.look_at = tuple(center)
+        camera.position = tuple(position)
+        camera.look_at = tuple(look_at)
         for client in self.server.get_clients().values():
-            client.camera.position = position
-            client.camera.look_at = center
+            cam = client.camera
+            try:
+                width, height, fov = cam.image_width, cam.image_height, cam.fov
+            except AssertionError:  # the client has not reported its camera yet
+                width, height, fov = 0, 0, camera.fov
+            aspect = width / height if width > 0 and height > 0 else 4 / 3
+            position, look_at = camera_pose(box, fov=fov, aspect=aspect)
+            cam.near, cam.far = near, far
+            cam.position = position
+            cam.look_at = look_at
 
     def _push(self, job: _Job, snap: Snapshot | None, ui: dict[str, Any]) -> None:
         root = f"/jobs/{job.key}"

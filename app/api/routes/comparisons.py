@@ -5,10 +5,11 @@ from __future__ import annotations
 from typing import Any
 
 from fastapi import APIRouter, HTTPException
+from fastapi.responses import FileResponse
 
 from app.api.deps import ServiceDep
-from app.api.routes.jobs import validate_run
-from app.models import ComparisonCreate, ComparisonPublic, ErrorPublic, JobPublic
+from app.api.routes.jobs import VIEW_DESCRIPTION, show_in_viewer, validate_run
+from app.models import COMPARISON_FILES, ComparisonCreate, ComparisonPublic, ErrorPublic, JobPublic, ViewPublic
 from app.services import Service
 from strep_core.errors import ConfigError
 
@@ -42,6 +43,7 @@ def comparison_public(service: Service, comparison_id: str) -> ComparisonPublic:
         created_at=comparison["created_at"],
         status=comparison_status([j.status for j in jobs]),  # type: ignore[arg-type]
         jobs=jobs,
+        files=[name for name in COMPARISON_FILES if service.recordings.path(comparison_id).is_file()],
     )
 
 
@@ -72,3 +74,52 @@ def create_comparison(body: ComparisonCreate, service: ServiceDep) -> Comparison
 @router.get("/{comparison_id}", response_model=ComparisonPublic, responses=_errors(404), summary="One comparison")
 def get_comparison(comparison_id: str, service: ServiceDep) -> ComparisonPublic:
     return comparison_public(service, comparison_id)
+
+
+@router.get(
+    "/{comparison_id}/files/{name}",
+    response_class=FileResponse,
+    responses={
+        200: {"content": {"application/octet-stream": {}}, "description": "the file"},
+        **_errors(404, 409),
+    },
+    summary="Download a comparison's file",
+    description="`name`: recording.rrd, one Rerun recording with every method of the comparison side by side "
+    "(open it with `rerun recording.rrd`). It is written shortly after the comparison's last job finished: "
+    "409 (with `Retry-After`) until then; 404 when none of its jobs reported progress.",
+)
+def comparison_file(comparison_id: str, name: str, service: ServiceDep) -> FileResponse:
+    comparison = comparison_public(service, comparison_id)
+    filename = COMPARISON_FILES.get(name)
+    if filename is None:
+        raise HTTPException(404, f"no comparison file named {name!r}; names are: {', '.join(COMPARISON_FILES)}")
+    if comparison.status in ("queued", "running"):
+        raise HTTPException(
+            409,
+            f"comparison {comparison_id!r} is {comparison.status}; its recording is written once all its jobs finish",
+        )
+    state, reason = service.recordings.state(comparison_id)
+    if state == "failed":
+        raise HTTPException(404, f"comparison {comparison_id!r} has no {name}: {reason}")
+    if state != "ready":
+        service.recordings.ensure(comparison_id)
+        raise HTTPException(
+            409,
+            f"the {name} of comparison {comparison_id!r} is being written; retry shortly",
+            headers={"Retry-After": "1"},
+        )
+    path = service.recordings.path(comparison_id)
+    return FileResponse(path, media_type="application/octet-stream", filename=f"{comparison_id}-{filename}")
+
+
+@router.post(
+    "/{comparison_id}/view",
+    response_model=ViewPublic,
+    responses=_errors(404, 409, 503),
+    summary="Show a comparison in the 3D viewer",
+    description=VIEW_DESCRIPTION,
+)
+def view_comparison(comparison_id: str, service: ServiceDep) -> ViewPublic:
+    if service.store.get_comparison(comparison_id) is None:
+        raise HTTPException(404, f"comparison {comparison_id!r} not found")
+    return show_in_viewer(service, comparison_id=comparison_id)

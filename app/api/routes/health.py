@@ -22,6 +22,8 @@ async def health(service: ServiceDep) -> HealthPublic:
         jobs_queued=queued,
         max_concurrent_jobs=service.settings.max_concurrent_jobs,
         methods=list(available()),
+        viewer_port=service.viewer.port if service.viewer is not None else None,
+        viewer_url=service.viewer.url if service.viewer is not None else None,
     )
 
 

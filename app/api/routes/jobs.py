@@ -11,8 +11,18 @@ from fastapi.responses import FileResponse
 from fastapi.sse import EventSourceResponse, ServerSentEvent
 
 from app.api.deps import JobDep, ServiceDep
-from app.models import FILE_MEDIA_TYPES, RESULT_FILES, ErrorPublic, JobCreate, JobPublic, JobsPublic, JobStatus
+from app.models import (
+    FILE_MEDIA_TYPES,
+    RESULT_FILES,
+    ErrorPublic,
+    JobCreate,
+    JobPublic,
+    JobsPublic,
+    JobStatus,
+    ViewPublic,
+)
 from app.services import Service
+from app.services.live import NothingToShow, ShowFailed
 from app.store import FINAL_STATUSES, StoredEvent
 from strep_core.config import RunConfig
 from strep_core.errors import ConfigError, SequenceError
@@ -229,3 +239,36 @@ def job_file(job: JobDep, name: str, service: ServiceDep) -> FileResponse:
     if not path.is_file():
         raise HTTPException(404, f"job {job['id']!r} has no {name} ({job['status']})")
     return FileResponse(path, media_type=FILE_MEDIA_TYPES[name], filename=name)
+
+
+VIEW_DESCRIPTION = (
+    "Shows the run in the live 3D viewer (every open viewer tab follows): a finished run is reopened from its "
+    "stored events and can be replayed with the viewer's Play and Iteration controls. 409 when the viewer is "
+    "disabled, the run has no progress yet or its sequence is gone."
+)
+
+
+def show_in_viewer(service: Service, *, job_id: str | None = None, comparison_id: str | None = None) -> ViewPublic:
+    """Ask the viewer feed to show a job (its comparison, if any) or a comparison; HTTP errors."""
+    if service.live is None or service.viewer is None:
+        raise HTTPException(409, "the 3D viewer is disabled (STREP_VIEWER_ENABLED=false)")
+    try:
+        shown = service.live.show(job_id=job_id, comparison_id=comparison_id)
+    except LookupError as exc:
+        raise HTTPException(404, str(exc)) from exc
+    except (NothingToShow, ShowFailed) as exc:
+        raise HTTPException(409, str(exc)) from exc
+    except TimeoutError as exc:
+        raise HTTPException(503, "the viewer did not answer in time; try again") from exc
+    return ViewPublic(viewer_url=service.viewer.url, group=shown["group"], jobs=shown["jobs"])
+
+
+@router.post(
+    "/{job_id}/view",
+    response_model=ViewPublic,
+    responses=_errors(404, 409, 503),
+    summary="Show a job in the 3D viewer",
+    description=VIEW_DESCRIPTION + " A job of a comparison is shown with the other methods of its comparison.",
+)
+def view_job(job: JobDep, service: ServiceDep) -> ViewPublic:
+    return show_in_viewer(service, job_id=job["id"])

@@ -1,0 +1,294 @@
+"""The web page and the live 3D viewer in a real browser: Playwright driving Debian's chromium.
+
+The real server (``python -m app.server``, the viewer enabled) runs on free loopback ports
+with a temporary data directory. A comparison of strep and strep-nolink is started from the
+page and followed live; the curves and the results table are checked from the page's own
+pixels and cells, the viewer's point clouds from a screenshot against its empty scene. The
+screenshots are saved as docs/screenshots/page.png and docs/screenshots/viewer.png. The
+browser-side frame time of the viewer page is measured while both jobs run (printed).
+
+Needs ``/usr/bin/chromium`` (``apt-get install chromium``; no browser is downloaded). Without
+it the tests are skipped, unless ``CI`` is set: then they fail.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import signal
+import socket
+import statistics
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+CHROMIUM = Path(os.environ.get("STREP_CHROMIUM", "/usr/bin/chromium"))
+BROWSER_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--use-angle=swiftshader",  # WebGL without a GPU
+    "--enable-unsafe-swiftshader",
+    "--disable-background-networking",
+]
+SCREENSHOTS = ROOT / "docs" / "screenshots"
+SAMPLE = "sample:sim2d-small"
+ITERATIONS = 15
+SERIES = [(0x2F, 0x6F, 0xDE), (0xE6, 0x7E, 0x22)]  # the page's first two curve colours (COLORS in app.js)
+FINAL = {"succeeded", "failed", "cancelled", "interrupted"}
+
+if not CHROMIUM.exists():
+    reason = f"chromium not found at {CHROMIUM} (apt-get install chromium, or set STREP_CHROMIUM)"
+    if os.environ.get("CI"):
+        pytest.fail(reason, pytrace=False)
+    pytest.skip(reason, allow_module_level=True)
+
+from PIL import Image  # noqa: E402
+from playwright.sync_api import Browser, Page, sync_playwright  # noqa: E402
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def port_is_free(port: int) -> bool:
+    """A server could listen on ``port`` now (connections it closed may linger in TIME_WAIT)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+        return True
+
+
+@dataclass
+class Server:
+    proc: subprocess.Popen[bytes]
+    url: str
+    viewer_url: str
+    viewer_port: int
+    log: Path
+
+    def output(self) -> str:
+        return self.log.read_text(errors="replace")[-4000:]
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+    """``python -m app.server`` with the viewer on a free port; stopped (SIGINT) at the end."""
+    tmp = tmp_path_factory.mktemp("browser")
+    port, viewer_port = free_port(), free_port()
+    env = {
+        **os.environ,
+        "STREP_VIEWER_ENABLED": "true",
+        "STREP_VIEWER_PORT": str(viewer_port),
+        "STREP_MAX_CONCURRENT_JOBS": "2",
+        "STREP_WORKER_THREADS": "1",
+    }
+    for name in ("STREP_API_TOKEN", "STREP_PLUGINS"):
+        env.pop(name, None)
+    log = tmp / "server.log"
+    args = ["--host", "127.0.0.1", "--port", str(port), "--data-dir", str(tmp / "data")]
+    with log.open("wb") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "app.server", *args], cwd=ROOT, stdout=out, stderr=out, env=env)
+    url = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 90
+    health: dict[str, Any] = {}
+    while not health:
+        if proc.poll() is not None:
+            raise AssertionError(f"the server exited with {proc.returncode}:\n{log.read_text(errors='replace')}")
+        try:
+            health = httpx.get(f"{url}/api/health", timeout=2).json()
+        except httpx.TransportError:
+            assert time.monotonic() < deadline, log.read_text(errors="replace")
+            time.sleep(0.2)
+    # the viewer is where health says: on the port asked for (free a moment ago) or the next one
+    assert health["viewer_port"] >= viewer_port
+    server = Server(proc, url, health["viewer_url"], health["viewer_port"], log)
+    try:
+        yield server
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=10)
+    assert proc.returncode == 0, server.output()
+    assert port_is_free(server.viewer_port), "the viewer's port is still taken after the server stopped"
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Browser]:
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=str(CHROMIUM), args=BROWSER_ARGS)
+        try:
+            yield b
+        finally:
+            b.close()
+
+
+def image(png: bytes) -> np.ndarray:
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(np.int16)
+
+
+def coloured_pixels(rgb: np.ndarray) -> int:
+    """Pixels of saturated colour (frames are coloured by hue; text, grid and panel are grey)."""
+    return int(((rgb.max(axis=2) - rgb.min(axis=2)) > 60).sum())
+
+
+def canvas_pixels(page: Page, selector: str, colours: list[tuple[int, int, int]]) -> list[int]:
+    """How many pixels of a canvas are (close to) each colour, read with getImageData."""
+    return page.evaluate(
+        """([sel, colours]) => {
+          const c = document.querySelector(sel);
+          const d = c.getContext("2d").getImageData(0, 0, c.width, c.height).data;
+          const counts = colours.map(() => 0);
+          for (let i = 0; i < d.length; i += 4) {
+            if (d[i + 3] < 200) continue;
+            colours.forEach(([r, g, b], k) => {
+              if (Math.abs(d[i] - r) + Math.abs(d[i + 1] - g) + Math.abs(d[i + 2] - b) < 60) counts[k]++;
+            });
+          }
+          return counts;
+        }""",
+        [selector, colours],
+    )
+
+
+FRAME_TIMES_JS = """(ms) => new Promise((resolve) => {
+  const deltas = [];
+  const start = performance.now();
+  let last = start;
+  function tick(now) {
+    deltas.push(now - last);
+    last = now;
+    if (now - start < ms) requestAnimationFrame(tick); else resolve(deltas.slice(1));
+  }
+  requestAnimationFrame(tick);
+})"""
+
+
+def open_viewer(browser: Browser, url: str) -> Page:
+    page = browser.new_page(viewport={"width": 1280, "height": 760})
+    page.goto(url)
+    page.wait_for_selector("canvas", timeout=60_000)
+    page.get_by_text("Connected").wait_for(timeout=60_000)
+    time.sleep(1.0)
+    # viser warns that WebGL is software-rendered here (SwiftShader): close the notice
+    notice = page.get_by_text("Software WebGL rendering detected")
+    if notice.count():
+        page.locator(".mantine-Notification-root button, .mantine-Notification-closeButton").first.click()
+        notice.wait_for(state="hidden", timeout=5000)
+    return page
+
+
+def test_upload_error_is_shown(server: Server, browser: Browser) -> None:
+    page = browser.new_page()
+    page.goto(server.url)
+    page.wait_for_selector("#sequence option", state="attached")
+    page.click("#upload-box summary")
+    page.set_input_files(
+        "#upload-file", files=[{"name": "broken.npz", "mimeType": "application/octet-stream", "buffer": b"not a zip"}]
+    )
+    page.click("#upload-button")
+    message = page.locator("#message.error")
+    message.wait_for(timeout=30_000)
+    text = message.inner_text()
+    assert text.startswith("upload failed: ") and "broken.npz" in text, text
+    assert page.locator("#sequence option").count() == 3  # nothing was added
+    page.close()
+
+
+def test_live_comparison_in_page_and_viewer(server: Server, browser: Browser) -> None:
+    SCREENSHOTS.mkdir(parents=True, exist_ok=True)
+    viewer = open_viewer(browser, server.viewer_url)
+    empty = image(viewer.screenshot())
+
+    page = browser.new_page(viewport={"width": 1280, "height": 900})
+    page.goto(server.url)
+    page.wait_for_selector("#methods input")
+    assert page.get_attribute("#viewer-link", "href") == f"http://127.0.0.1:{server.viewer_port}/"
+    page.select_option("#sequence", SAMPLE)
+    for box in page.locator("#methods input").all():
+        box.set_checked(box.get_attribute("value") in ("strep", "strep-nolink"))
+    page.fill("#iterations", str(ITERATIONS))
+    page.click("#start")
+    page.locator("#results tbody tr").nth(1).wait_for(timeout=10_000)
+    assert "started" in page.inner_text("#message")
+
+    # the viewer's frame time while both jobs optimise and stream to it
+    api = httpx.Client(base_url=server.url, timeout=30)
+    cmp_id = page.evaluate("() => state.comparison")
+
+    def statuses() -> list[str]:
+        return [j["status"] for j in api.get(f"/api/comparisons/{cmp_id}").json()["jobs"]]
+
+    deadline = time.monotonic() + 60
+    while statuses() != ["running", "running"]:
+        assert time.monotonic() < deadline and not set(statuses()) & FINAL, statuses()
+        time.sleep(0.2)
+    viewer.bring_to_front()
+    deltas = viewer.evaluate(FRAME_TIMES_JS, 3000)
+    still = statuses()
+    print(
+        f"\nviewer page, two live jobs ({still}): {len(deltas)} frames in 3 s, frame time median "
+        f"{statistics.median(deltas):.1f} ms, mean {statistics.mean(deltas):.1f} ms, "
+        f"p95 {np.percentile(deltas, 95):.1f} ms, max {max(deltas):.1f} ms"
+    )
+    assert len(deltas) >= 10  # it keeps rendering while data streams in
+
+    # the page: both rows succeed, the curves are drawn, the table has numeric ATEs
+    page.bring_to_front()
+    page.wait_for_function(
+        """() => [...document.querySelectorAll('#results tbody td.status')]
+                 .filter((td) => td.textContent.trim() === 'succeeded').length === 2""",
+        timeout=150_000,
+    )
+    for chart in ("#loss-chart", "#ate-chart"):
+        counts = canvas_pixels(page, chart, SERIES)
+        assert min(counts) > 100, (chart, counts)  # each method's curve: a line of over 100 pixels
+    rows = page.locator("#results tbody tr")
+    assert rows.count() == 2
+    methods = [rows.nth(i).locator("td").first.inner_text().strip() for i in range(2)]
+    assert methods == ["strep", "strep-nolink"]
+    ates = [float(rows.nth(i).locator("td.ate").inner_text().split()[0]) for i in range(2)]
+    assert all(np.isfinite(a) and a > 0 for a in ates), ates
+    expected = [j["metrics"]["ate"] for j in api.get(f"/api/comparisons/{cmp_id}").json()["jobs"]]
+    np.testing.assert_allclose(ates, expected, rtol=1e-2)  # shown with 3 significant digits
+    page.locator("#comparison-rrd").wait_for(timeout=30_000)  # the comparison's recording is offered
+    assert page.get_attribute("#comparison-rrd", "href") == f"/api/comparisons/{cmp_id}/files/recording.rrd"
+    page.evaluate("() => document.activeElement && document.activeElement.blur()")
+    page.screenshot(path=SCREENSHOTS / "page.png", full_page=True)
+
+    # "Show in 3D viewer" opens the viewer and asks the service to show this comparison there
+    with page.expect_response(lambda r: r.url.endswith("/view")) as answer, page.expect_popup() as popup:
+        page.click("#view-3d")
+    assert answer.value.url == f"{server.url}/api/comparisons/{cmp_id}/view" and answer.value.status == 200
+    popup.value.wait_for_load_state()
+    assert popup.value.url == server.viewer_url
+    popup.value.close()
+
+    # the viewer: the comparison is drawn side by side, point clouds on screen
+    viewer.bring_to_front()
+    time.sleep(2.0)
+    shot = viewer.screenshot()
+    (SCREENSHOTS / "viewer.png").write_bytes(shot)
+    before, after = coloured_pixels(empty), coloured_pixels(image(shot))
+    print(f"viewer coloured pixels: empty scene {before}, with the comparison {after}")
+    assert after > before + 5000, (before, after)
+    assert viewer.get_by_text(f"sim2d-small: strep vs strep-nolink [{cmp_id}]").count() >= 1
+    api.close()
+    viewer.close()
+    page.close()
