@@ -309,6 +309,22 @@ def format_pose_table(rows: list[dict[str, Any]], summary: list[dict[str, Any]],
     return "\n".join(lines)
 
 
+def write_docs(path: Path, table: str, report: dict[str, Any]) -> None:
+    """Write the table with the machine and settings it came from into a markdown file."""
+    m = report["machine"]
+    mode = "quick" if report["quick"] else "full"
+    text = (
+        "# Benchmarks\n\n"
+        f"Latest `strep bench{' --quick' if report['quick'] else ''}` ({mode} mode): {len(report['rows'])} runs in "
+        f"{report['wall_seconds']:.0f} s on {m['platform']}, {m['cpu_count']} CPU cores, torch {m['torch']}"
+        f"{', GPU ' + m['cuda'] if m['cuda'] else ', no GPU'}.\n\n"
+        "Cells: ATE / point L2 (in the sequence unit: px or m) / wall seconds. Learned methods start from the ICP "
+        "warm start; CARMEN windows start every method from identity.\n\n"
+        f"{table}\n"
+    )
+    Path(path).write_text(text)
+
+
 def machine_info() -> dict[str, Any]:
     import os
 
@@ -361,4 +377,7 @@ def main(args: argparse.Namespace) -> int:
     print("cells: ATE / point L2 / wall seconds")
     print(table)
     print(f"wrote {out / 'bench.json'} and {out / 'bench.md'} in {report['wall_seconds']:.0f} s")
+    if args.docs:
+        write_docs(args.docs, table, report)
+        print(f"updated {args.docs}")
     return 0
