@@ -15,7 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from strep_core.errors import ConfigError
 
-InitName = Literal["auto", "identity", "odometry", "ground_truth", "icp", "multiway", "kiss"]
+InitName = Literal["auto", "identity", "odometry", "ground_truth", "icp", "multiway", "kiss", "fpfh"]
 
 
 class _Section(BaseModel):
@@ -123,31 +123,99 @@ class ClassicalConfig(_Section):
 
 
 class ModelConfig(_Section):
-    """Network shapes. Defaults are the paper's."""
+    """Network shapes of the learned methods. Widths are the paper's."""
 
     latent_dim: int | None = Field(default=None, ge=1, le=512, description="None: 16 in 2D, 24 in 3D")
-    point_layers: list[int] = Field(default=[64, 256, 1024], min_length=1)
-    head_layers: list[int] = Field(default=[512, 128])
-    occupancy_layers: list[int] = Field(default=[64, 256, 512, 256, 128], min_length=1)
+    point_layers: list[int] = Field(
+        default=[64, 256, 1024], min_length=1, description="per-point layers of the pose decoder"
+    )
+    head_layers: list[int] = Field(default=[512, 128], description="fully connected layers after max-pooling")
+    occupancy_layers: list[int] = Field(
+        default=[64, 256, 512, 256, 128], min_length=1, description="hidden layers of the occupancy MLP"
+    )
+    batch_norm: bool = Field(
+        default=False,
+        description="BatchNorm after every decoder layer (couples the frames of a batch; the final "
+        "pass then uses batch statistics too)",
+    )
+    link_init: float = Field(
+        default=0.5,
+        ge=-1,
+        le=1,
+        description="initial value of every entry of the temporal link weight w (strep only)",
+    )
+    decoder_points: int | None = Field(
+        default=16,
+        ge=8,
+        description="points per frame fed to the pose decoder: a fixed, evenly strided subset "
+        "(the same at every step and in the final pass); None: all points",
+    )
+    composition: Literal["local", "world"] = Field(
+        default="world",
+        description="local: pose = warm start @ correction; world: correction rotates about the "
+        "sensor and translates along world axes",
+    )
+    translation_scale: float = Field(
+        default=1.0, gt=0, description="decoder translation output x this x sequence scale = correction"
+    )
 
 
 class LossConfig(_Section):
-    """Loss terms and their weights."""
+    """Loss terms and their weights. Thresholds and radii are fractions of the sequence scale."""
 
     chamfer_weight: float = Field(default=1.0, ge=0)
-    occupancy_weight: float = Field(default=1.0, ge=0)
+    occupancy_weight: float = Field(default=0.0, ge=0)
     window: int = Field(default=2, ge=1, le=64, description="Chamfer to neighbours within +-window frames")
+    loop_radius: float | None = Field(
+        default=0.5,
+        gt=0,
+        description="also Chamfer to frames farther apart in time whose sensors are closer than this "
+        "(x scale) in the current estimate; None: temporal neighbours only",
+    )
+    loop_neighbours: int = Field(default=8, ge=1, le=64, description="spatial neighbours per frame at most")
+    chamfer: Literal["point", "plane"] = Field(
+        default="plane",
+        description="point: squared point-to-point distances (paper); plane: distances along the "
+        "matched point's normal (PCA of its neighbours in its frame)",
+    )
+    robust: Literal["none", "truncated", "huber"] = Field(
+        default="truncated",
+        description="none: squared distances (paper); truncated: min(d^2, threshold^2); huber",
+    )
+    threshold: float = Field(default=0.02, gt=0, description="robust threshold (x scale; at the end if annealed)")
+    threshold_start: float | None = Field(
+        default=0.1, gt=0, description="robust threshold (x scale) at the start, annealed geometrically; None: constant"
+    )
     free_samples: int = Field(default=1, ge=0, le=64, description="free-space samples per ray")
+    occupancy_points: int = Field(default=16, ge=1, description="rays (observed points) per frame per step")
+    occupancy_warmup: int = Field(
+        default=0, ge=0, description="first N iterations: the occupancy MLP learns the map, poses get no gradient from it"
+    )
 
 
 class OptimConfig(_Section):
     """The per-sequence optimisation."""
 
     iterations: int = Field(default=300, ge=0, le=100_000)
-    lr_network: float = Field(default=1e-3, gt=0, le=1)
-    lr_latent: float = Field(default=1e-4, gt=0, le=1)
+    lr_network: float = Field(default=1e-3, gt=0, le=1, description="Adam lr of decoder, occupancy MLP and w")
+    lr_latent: float = Field(default=1e-4, gt=0, le=1, description="Adam lr of the latent vectors (paper)")
+    lr_latent_frozen: float = Field(
+        default=0.1,
+        gt=0,
+        le=10,
+        description="Adam lr of the latents when from_model + freeze re-optimise only them "
+        "(1e-4 barely moves N(0, 1) latents in a few hundred steps)",
+    )
+    schedule: Literal["constant", "cosine"] = Field(default="cosine", description="learning-rate schedule")
+    final_lr_fraction: float = Field(default=0.05, ge=0, le=1, description="cosine: final lr / initial lr")
     batch_frames: int | None = Field(default=None, ge=2, description="frames per batch; None: all")
-    points_per_frame: int | None = Field(default=None, ge=8, description="points per frame per step; None: auto")
+    points_per_frame: int | None = Field(
+        default=64, ge=8, description="query points per frame per step for Chamfer; None: all"
+    )
+    max_points_per_frame: int = Field(
+        default=4096, ge=16, description="working set: frames with more points keep a fixed random subset"
+    )
+    pair_interval: int = Field(default=10, ge=1, description="recompute spatial neighbours every N iterations")
     event_interval: int = Field(default=5, ge=1, description="emit an iteration event every N iterations")
 
 

@@ -1,0 +1,54 @@
+"""The learned methods: `strep`, its no-link ablation and the DeepMapping baseline.
+
+All three run the same optimiser (`strep_core.optimize.optimize`); only the latent part of
+the pose decoder differs (see `strep_core.model`). ``init_poses`` is the warm start chosen by
+the registry (an ICP run by default); the networks predict a correction on top of it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from strep_core.config import RunConfig
+from strep_core.methods.registry import MethodOutput, RunContext, register
+from strep_core.sequence import Sequence
+
+
+def _iterations(seq: Sequence, cfg: RunConfig) -> int:
+    return cfg.optim.iterations
+
+
+@register(
+    "strep",
+    description="STREP (Wang et al.): temporally linked latents + PointNet pose decoder, Chamfer + occupancy",
+    learned=True,
+    total_iterations=_iterations,
+)
+def strep(seq: Sequence, init_poses: np.ndarray, config: RunConfig, ctx: RunContext) -> MethodOutput:
+    from strep_core.optimize import optimize
+
+    return optimize(seq, init_poses, config, ctx, variant="strep")
+
+
+@register(
+    "strep-nolink",
+    description="STREP ablation: per-frame latents without the temporal link w",
+    learned=True,
+    total_iterations=_iterations,
+)
+def strep_nolink(seq: Sequence, init_poses: np.ndarray, config: RunConfig, ctx: RunContext) -> MethodOutput:
+    from strep_core.optimize import optimize
+
+    return optimize(seq, init_poses, config, ctx, variant="strep-nolink")
+
+
+@register(
+    "deepmapping",
+    description="DeepMapping (Ding & Feng 2019): pose from the points alone, no latent",
+    learned=True,
+    total_iterations=_iterations,
+)
+def deepmapping(seq: Sequence, init_poses: np.ndarray, config: RunConfig, ctx: RunContext) -> MethodOutput:
+    from strep_core.optimize import optimize
+
+    return optimize(seq, init_poses, config, ctx, variant="deepmapping")

@@ -1,0 +1,208 @@
+"""Networks of the learned methods: latent chain, PointNet pose decoder, occupancy MLP.
+
+One code path serves the three variants (see `Variant`); only the latent part differs:
+
+* ``strep``: per-frame latents ``z~_k ~ N(0, 1)`` linked through time by a learnable
+  elementwise weight ``w``: ``z_1 = z~_1``, ``z_k = z~_k + w * z_{k-1}`` (paper, Sec. 3.2);
+* ``strep-nolink``: the same latents without the link (``z_k = z~_k``; no ``w`` parameter);
+* ``deepmapping``: no latent; the pose comes from the frame's points alone (Ding & Feng 2019).
+
+All lengths are *normalised*: local points and translations are divided by the sequence's
+`scale` before they reach a network, so the same widths and learning rates work in pixels
+and in metres. Networks return values and keep no state between calls.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+from torch import nn
+
+from strep_core import geometry as g
+
+Variant = Literal["strep", "strep-nolink", "deepmapping"]
+Composition = Literal["local", "world"]
+
+
+def pose_vector_size(dim: int) -> int:
+    """Entries of a pose vector: 3 in 2D ``(x, y, theta)``, 6 in 3D ``(t, axis-angle)``."""
+    return 3 if dim == 2 else 6
+
+
+# --------------------------------------------------------------------------------------------
+# Latents
+
+
+def linked_chain(raw: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """The linear recurrence ``z_0 = raw_0``, ``z_k = raw_k + w * z_{k-1}`` for every frame.
+
+    Computed as an inclusive parallel scan (Hillis-Steele): ``ceil(log2 K)`` vector steps
+    ``z_k += w^s z_{k-s}`` for ``s = 1, 2, 4, ...``, so the chain over the whole sequence
+    costs ``O(K b log K)`` with no Python loop over frames, and gradients reach every earlier
+    ``raw_j`` and ``w``.
+
+    Args:
+        raw: ``(K, b)`` free latents ``z~``.
+        w: ``(b,)`` elementwise link weight.
+
+    Returns:
+        ``(K, b)`` linked latents ``z``.
+    """
+    z = raw
+    power = w
+    step = 1
+    k = raw.shape[0]
+    while step < k:
+        z = torch.cat([z[:step], z[step:] + power * z[:-step]], 0)
+        power = power * power
+        step *= 2
+    return z
+
+
+class Latents(nn.Module):
+    """Per-frame latent vectors, linked (``strep``) or not (``strep-nolink``).
+
+    Parameters: ``raw (K, b)`` drawn from ``N(0, 1)``; ``w (b,)`` only when linked,
+    initialised to ``w_init`` in every entry.
+    """
+
+    def __init__(self, num_frames: int, dim: int, *, linked: bool, w_init: float) -> None:
+        super().__init__()
+        self.raw = nn.Parameter(torch.randn(num_frames, dim))
+        self.w = nn.Parameter(torch.full((dim,), float(w_init))) if linked else None
+
+    def forward(self) -> torch.Tensor:
+        """``(K, b)`` latents of every frame (the chain always spans the whole sequence)."""
+        if self.w is None:
+            return self.raw
+        return linked_chain(self.raw, self.w)
+
+
+# --------------------------------------------------------------------------------------------
+# Pose decoder
+
+
+class _BatchNorm(nn.BatchNorm1d):
+    """BatchNorm over every leading axis: ``(..., C)`` normalised per channel ``C``."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return super().forward(x.reshape(-1, x.shape[-1])).view(x.shape)
+
+
+def _mlp(sizes: list[int], *, batch_norm: bool = False) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for a, b in zip(sizes[:-1], sizes[1:], strict=True):
+        layers += [nn.Linear(a, b), *([_BatchNorm(b)] if batch_norm else []), nn.ReLU(inplace=True)]
+    return nn.Sequential(*layers)
+
+
+class PoseDecoder(nn.Module):
+    """PointNet-style regression of a pose-correction vector per frame.
+
+    Per point: ``[x_i, z_k]`` -> shared layers ``point_layers`` (Linear + ReLU, i.e. a
+    kernel-1 convolution over points) -> max-pool over the frame's points -> fully
+    connected ``head_layers`` (Linear + ReLU) -> a last Linear to the pose vector, zero
+    initialised so that every correction starts at exactly the identity.
+
+    The first layer is split as ``W [x; z] = W_x x + W_z z``: the latent term is computed
+    once per frame and broadcast to its points (the same function as concatenating ``z``
+    to every point, without the ``(B, N, D + b)`` tensor).
+    """
+
+    def __init__(
+        self,
+        dim: int,
+        latent_dim: int,
+        point_layers: list[int],
+        head_layers: list[int],
+        *,
+        batch_norm: bool = False,
+    ) -> None:
+        super().__init__()
+        self.dim = dim
+        self.latent_dim = latent_dim
+        self.first_points = nn.Linear(dim, point_layers[0])
+        self.first_norm = _BatchNorm(point_layers[0]) if batch_norm else nn.Identity()
+        self.point_mlp = _mlp(point_layers, batch_norm=batch_norm)
+        self.head = _mlp([point_layers[-1], *head_layers], batch_norm=batch_norm)
+        self.out = nn.Linear(([point_layers[-1], *head_layers])[-1], pose_vector_size(dim))
+        nn.init.zeros_(self.out.weight)
+        nn.init.zeros_(self.out.bias)
+        # Built last, so the shared layers draw the same random numbers in every variant.
+        self.first_latent = nn.Linear(latent_dim, point_layers[0], bias=False) if latent_dim else None
+
+    def forward(self, points: torch.Tensor, latent: torch.Tensor | None) -> torch.Tensor:
+        """Pose-correction vectors of a batch of frames.
+
+        Args:
+            points: ``(B, N, D)`` normalised local points (frames with fewer points are
+                padded by repeating their own points, which max-pooling ignores).
+            latent: ``(B, b)`` latents, or ``None`` for the ``deepmapping`` variant.
+
+        Returns:
+            ``(B, 3)`` ``(x, y, theta)`` in 2D or ``(B, 6)`` ``(t, axis-angle)`` in 3D;
+            translations in normalised units, angles in radians.
+        """
+        h = self.first_points(points)
+        if self.first_latent is not None:
+            if latent is None:
+                raise ValueError("this decoder was built for latents; pass them")
+            h = h + self.first_latent(latent)[:, None, :]
+        h = self.point_mlp(torch.relu(self.first_norm(h)))
+        feature = h.amax(dim=1)
+        return self.out(self.head(feature))
+
+
+# --------------------------------------------------------------------------------------------
+# Occupancy
+
+
+class OccupancyMLP(nn.Module):
+    """Occupancy logit of world positions: ``layers`` (Linear + ReLU) then Linear to 1.
+
+    Input: ``(P, D)`` normalised world coordinates (centred on the initial trajectory).
+    Output: ``(P,)`` logits (occupied > 0).
+    """
+
+    def __init__(self, dim: int, layers: list[int]) -> None:
+        super().__init__()
+        self.body = _mlp([dim, *layers])
+        self.out = nn.Linear(layers[-1], 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.out(self.body(x))[..., 0]
+
+
+# --------------------------------------------------------------------------------------------
+# Pose composition
+
+
+def correction_pose(vector: torch.Tensor, *, translation_scale: float = 1.0) -> torch.Tensor:
+    """Homogeneous correction ``(B, D+1, D+1)`` from decoder outputs ``(B, 3|6)``.
+
+    The translation part is multiplied by ``translation_scale`` (normalised units); the
+    rotation part is an angle (2D) or an axis-angle vector (3D, exact exponential map,
+    smooth with finite gradients at the identity).
+    """
+    d = 2 if vector.shape[-1] == 3 else 3
+    v = torch.cat([vector[..., :d] * translation_scale, vector[..., d:]], -1)
+    return g.pose_from_vector(v)
+
+
+def compose_correction(init: torch.Tensor, corr: torch.Tensor, *, composition: Composition) -> torch.Tensor:
+    """Apply corrections ``corr (B, D+1, D+1)`` to warm-start poses ``init (B, D+1, D+1)``.
+
+    * ``"local"``: ``init @ corr``: the correction acts in the sensor's own frame, so its
+      rotation turns the frame about its sensor origin and its translation is expressed in
+      the frame's axes.
+    * ``"world"``: rotation about the sensor origin, translation along the world axes:
+      ``R = R_c R_0``, ``t = t_0 + t_c``.
+    """
+    if composition == "local":
+        return init @ corr
+    d = init.shape[-1] - 1
+    out = init.clone()
+    out[..., :d, :d] = corr[..., :d, :d] @ init[..., :d, :d]
+    out[..., :d, d] = init[..., :d, d] + corr[..., :d, d]
+    return out
