@@ -123,7 +123,8 @@ class ClassicalConfig(_Section):
 
 
 class ModelConfig(_Section):
-    """Network shapes of the learned methods. Widths are the paper's."""
+    """Networks of the learned methods: widths are the paper's, other defaults measured
+    (see `strep_core.optimize`)."""
 
     latent_dim: int | None = Field(default=None, ge=1, le=512, description="None: 16 in 2D, 24 in 3D")
     point_layers: list[int] = Field(
@@ -161,7 +162,10 @@ class ModelConfig(_Section):
 
 
 class LossConfig(_Section):
-    """Loss terms and their weights. Thresholds and radii are fractions of the sequence scale."""
+    """Loss terms of the learned methods (defaults measured, see `strep_core.optimize`).
+
+    Thresholds and radii are fractions of the sequence's scale (`Sequence.scale`).
+    """
 
     chamfer_weight: float = Field(default=1.0, ge=0)
     occupancy_weight: float = Field(default=0.0, ge=0)
@@ -189,12 +193,14 @@ class LossConfig(_Section):
     free_samples: int = Field(default=1, ge=0, le=64, description="free-space samples per ray")
     occupancy_points: int = Field(default=16, ge=1, description="rays (observed points) per frame per step")
     occupancy_warmup: int = Field(
-        default=0, ge=0, description="first N iterations: the occupancy MLP learns the map, poses get no gradient from it"
+        default=0,
+        ge=0,
+        description="first N iterations: the occupancy MLP learns the map, poses get no gradient from it",
     )
 
 
 class OptimConfig(_Section):
-    """The per-sequence optimisation."""
+    """The per-sequence optimisation of the learned methods (see `strep_core.optimize`)."""
 
     iterations: int = Field(default=300, ge=0, le=100_000)
     lr_network: float = Field(default=1e-3, gt=0, le=1, description="Adam lr of decoder, occupancy MLP and w")

@@ -7,6 +7,17 @@ One code path serves the three variants (see `Variant`); only the latent part di
 * ``strep-nolink``: the same latents without the link (``z_k = z~_k``; no ``w`` parameter);
 * ``deepmapping``: no latent; the pose comes from the frame's points alone (Ding & Feng 2019).
 
+The link weight ``w`` starts at ``ModelConfig.link_init`` (0.5) in every entry: a memory that
+halves every frame, so the chain's variance stays bounded (``1 / (1 - w^2)``: 1.33) over any
+sequence length, where ``w = 1`` would make ``z_k`` a random walk whose scale grows with
+``sqrt(k)`` and ``|w| > 1`` would explode. ``w`` itself is free (the paper's learnable
+vector), not clamped.
+
+Rotations: 2D corrections are ``(x, y, theta)``; 3D corrections are ``(t, omega)`` with
+``omega`` an axis-angle vector mapped by the exact exponential map (Rodrigues, with Taylor
+terms near zero): minimal, no singularity near the identity where corrections live, and
+``omega = 0`` is the identity, so a zero-initialised last layer starts at the warm start.
+
 All lengths are *normalised*: local points and translations are divided by the sequence's
 `scale` before they reach a network, so the same widths and learning rates work in pixels
 and in metres. Networks return values and keep no state between calls.
@@ -14,6 +25,7 @@ and in metres. Networks return values and keep no state between calls.
 
 from __future__ import annotations
 
+import itertools
 from typing import Literal
 
 import torch
@@ -92,7 +104,7 @@ class _BatchNorm(nn.BatchNorm1d):
 
 def _mlp(sizes: list[int], *, batch_norm: bool = False) -> nn.Sequential:
     layers: list[nn.Module] = []
-    for a, b in zip(sizes[:-1], sizes[1:], strict=True):
+    for a, b in itertools.pairwise(sizes):
         layers += [nn.Linear(a, b), *([_BatchNorm(b)] if batch_norm else []), nn.ReLU(inplace=True)]
     return nn.Sequential(*layers)
 
@@ -104,6 +116,11 @@ class PoseDecoder(nn.Module):
     kernel-1 convolution over points) -> max-pool over the frame's points -> fully
     connected ``head_layers`` (Linear + ReLU) -> a last Linear to the pose vector, zero
     initialised so that every correction starts at exactly the identity.
+
+    The paper's text says "1D convolution with kernel size 3": over an unordered point set a
+    kernel wider than 1 would mix arbitrary neighbours in storage order, so the layers are
+    per point, as in PointNet and DeepMapping. Optional BatchNorm after every layer
+    (``batch_norm``; off by default: it couples the frames of a batch and measured worse).
 
     The first layer is split as ``W [x; z] = W_x x + W_z z``: the latent term is computed
     once per frame and broadcast to its points (the same function as concatenating ``z``

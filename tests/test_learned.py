@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import replace
 
 import numpy as np
@@ -12,7 +13,7 @@ from strep_core import geometry as g
 from strep_core import metrics
 from strep_core.config import RunConfig
 from strep_core.errors import Cancelled
-from strep_core.events import CancelToken, CallbackSink, ListSink
+from strep_core.events import CallbackSink, CancelToken, ListSink
 from strep_core.methods import run
 from strep_core.model import linked_chain
 from strep_core.optimize import StrepModel, load_model, save_model
@@ -76,7 +77,7 @@ def test_events_arrive_in_order(strep_run, small: Sequence) -> None:
     assert all(len(e.poses) == len(small) and len(e.poses[0]) == 3 for e in its)
     assert set(its[0].losses) == {"total", "chamfer", "occupancy"}
     assert all(e.ate is not None for e in its)
-    assert all(a.elapsed <= b.elapsed for a, b in zip(its, its[1:]))
+    assert all(a.elapsed <= b.elapsed for a, b in itertools.pairwise(its))
 
 
 def test_variants_differ_only_in_the_latent_part() -> None:
@@ -222,7 +223,7 @@ def _room_sequence(frames: int = 8, seed: int = 0) -> Sequence:
             p = rng.uniform(0, 1, (1500, 3))
             p[:, axis] = side
             pts.append(p * np.array([6.0, 4.0, 3.0]))
-    room = np.concatenate(pts + [np.c_[rng.uniform(2, 3, (400, 2)), rng.uniform(0, 1, 400)]])  # a box
+    room = np.concatenate([*pts, np.c_[rng.uniform(2, 3, (400, 2)), rng.uniform(0, 1, 400)]])  # a box
     poses = []
     for k in range(frames):
         rot = g.so3_exp(np.array([0.0, 0.0, 0.15 * k]))
@@ -233,9 +234,7 @@ def _room_sequence(frames: int = 8, seed: int = 0) -> Sequence:
         keep = rng.random(len(room)) < 0.25 + 0.02 * k  # different sizes per frame
         local.append(g.apply(g.inverse(pose), room[keep]))
     noise = np.c_[rng.normal(0, 0.05, (frames, 3)), np.radians(rng.normal(0, 1.5, (frames, 3)))]
-    return Sequence(
-        frames=local, unit="m", poses=poses, initial_poses=poses @ g.se3_from_vector(noise), name="room"
-    )
+    return Sequence(frames=local, unit="m", poses=poses, initial_poses=poses @ g.se3_from_vector(noise), name="room")
 
 
 def test_strep_registers_3d_frames_of_different_sizes() -> None:
@@ -246,4 +245,7 @@ def test_strep_registers_3d_frames_of_different_sizes() -> None:
     assert result.poses.shape == (8, 4, 4)
     assert np.allclose(result.poses[:, :3, :3] @ result.poses[:, :3, :3].transpose(0, 2, 1), np.eye(3), atol=1e-5)
     assert all(len(e.poses[0]) == 6 for e in sink.of_kind("iteration"))
-    assert result.metrics["ate"] < 0.3 * result.metrics["initial_ate"], (result.metrics["initial_ate"], result.metrics["ate"])
+    assert result.metrics["ate"] < 0.3 * result.metrics["initial_ate"], (
+        result.metrics["initial_ate"],
+        result.metrics["ate"],
+    )
