@@ -216,7 +216,7 @@ class OptimConfig(_Section):
     final_lr_fraction: float = Field(default=0.05, ge=0, le=1, description="cosine: final lr / initial lr")
     batch_frames: int | None = Field(default=None, ge=2, description="frames per batch; None: all")
     points_per_frame: int | None = Field(
-        default=64, ge=8, description="query points per frame per step for Chamfer; None: all"
+        default=32, ge=8, description="query points per frame per step for Chamfer; None: all"
     )
     max_points_per_frame: int = Field(
         default=4096, ge=16, description="working set: frames with more points keep a fixed random subset"

@@ -179,8 +179,9 @@ def chamfer_matches(
         robust, threshold: see `robust_squared`.
         normals: optional ``(M, D)`` unit normals of the points in world axes. Given, the
             distance of a match is measured along the matched point's normal
-            (point-to-plane: ``((a - b) . n_b)^2``), and a match farther than ``threshold``
-            (point to point) costs ``threshold^2`` with ``robust="truncated"``.
+            (point-to-plane: ``r^2 = ((a - b) . n_b)^2``); with ``robust="truncated"`` a match
+            costs ``min(r^2, threshold^2)`` when its points are closer than ``threshold``, and
+            ``threshold^2`` otherwise.
 
     Returns:
         Scalar: ``mean_q rho(|points[src_q] - points[idx_q]|^2)`` (point to point).
@@ -195,7 +196,8 @@ def chamfer_matches(
         return robust_squared(d2, robust=robust, threshold=threshold).mean()
     r2 = (diff * normals.index_select(0, t)).sum(-1) ** 2
     if robust == "truncated":
-        return torch.where(d2 < threshold * threshold, r2, torch.full_like(r2, threshold * threshold)).mean()
+        t2 = threshold * threshold
+        return torch.where(d2 < t2, torch.clamp(r2, max=t2), torch.full_like(r2, t2)).mean()
     return robust_squared(r2, robust=robust, threshold=threshold).mean()
 
 

@@ -213,8 +213,9 @@ def compose_correction(init: torch.Tensor, corr: torch.Tensor, *, composition: C
     * ``"local"``: ``init @ corr``: the correction acts in the sensor's own frame, so its
       rotation turns the frame about its sensor origin and its translation is expressed in
       the frame's axes.
-    * ``"world"``: rotation about the sensor origin, translation along the world axes:
-      ``R = R_c R_0``, ``t = t_0 + t_c``.
+    * ``"world"``: rotation about the frame's local origin (its sensor, for data whose
+      sensor origins are zero), translation along the world axes: ``R = R_c R_0``,
+      ``t = t_0 + t_c``.
     """
     if composition == "local":
         return init @ corr

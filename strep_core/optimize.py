@@ -33,14 +33,17 @@ ATE in px; numbers from 100-iteration runs unless noted):
   3D room they stay within 1 mm where point-to-point drifts 9 mm. Large starting thresholds
   (0.2) pulled partially overlapping 3D frames 0.28 m off; 0.1 -> 0.02 works in 2D and 3D.
 * Occupancy: off by default (``occupancy_weight=0``). At weights 1, 0.1 and 0.01, with or
-  without a warm-up of the map, its gradients made every short run worse (48 frames: 1.6 px
-  without it, 3.0 to 17 px with it): the MLP cannot learn the map to pixel accuracy in a
-  few hundred steps, and its BCE pulls points toward the ridge it has learnt.
+  without a warm-up of the map, its gradients made every run worse (48 frames: 1.6 px
+  without it, 3.0 to 17 px with it; all 256 frames, 300 iterations with a 100-iteration
+  warm-up: 1.63 px at 0.01 and 2.38 px at 0.1 instead of 0.37, in 2.5x the time): the MLP
+  cannot learn the map to pixel accuracy in a few hundred steps, and its BCE pulls points
+  toward the ridge it has learnt.
 * Decoder input: a fixed, evenly strided subset of ``decoder_points`` points per frame (the
   same in every step and in the final pass, so the pose is a fixed function of the frame):
   8 points 0.51, 16 points 0.43, 32 points 0.45 (1.7x slower), 64 points no better.
-  Chamfer queries ``points_per_frame=64`` stratified random points per frame and step
-  against *all* points of the neighbour frames (128 queries: no better).
+  Chamfer queries ``points_per_frame=32`` stratified random points per frame and step
+  against *all* points of the neighbour frames (300 iterations: 0.38 with 32, 0.37 with 64
+  at 1.3x the time; 128 no better; on 7-Scenes 32 is as good as 128).
 * No BatchNorm: with it 0.53 instead of 0.45, 1.4x slower, and it couples frames.
 * Batches: ``batch_frames=None`` (all frames, every step); 128 frames gave the same ATE.
   Batches are contiguous, overlap by ``window`` frames so every temporal pair lies in one,
@@ -48,11 +51,20 @@ ATE in px; numbers from 100-iteration runs unless noted):
   sequence at every step.
 * Learning rates: Adam 1e-3 for the networks and ``w``, 1e-4 for the latents (the paper's);
   3e-3 for the networks or 1e-3 to 1e-2 for the latents changed the ATE by < 0.03 px. A
-  cosine schedule down to ``final_lr_fraction``. In test-time mode the latents alone must
+  cosine schedule down to ``final_lr_fraction``. ``w`` starts at 0.5 (0.9: 0.44 instead of
+  0.37 after 300 iterations) and stays within 0.48 to 0.58. In test-time mode the latents alone must
   move: 1e-4 left a frozen model 40 % worse than its warm start on new frames, 0.1 made it
   better than a fresh fit (``lr_latent_frozen``).
 * Defaults end to end (registry run, ICP warm start, 2 threads, quiet machine): strep
   0.37 px, strep-nolink 0.32 px, deepmapping 0.33 px after 300 iterations in about 60 s.
+
+Limits (measured): the corrections are found by gradient descent from the warm start, so a
+warm start with gross errors stays wrong. On CARMEN windows the ICP warm start from identity
+has pairs 10 to 90 degrees off and every learned variant ends within 0.03 m of it (4 to
+13 m ATE). From an odometry-like start on intel[0:100] (1 degree and 3 cm of noise per
+step, 0.65 m ATE; the window revisits no place) strep reached only 0.64 m where ICP reaches
+0.25 m: long drift without loop closures is poorly conditioned for per-frame absolute
+corrections.
 
 Cost per iteration is linear in frames and points: one decoder pass over ``K x
 decoder_points`` points, one KD-tree over the batch's points, ``K x points_per_frame x
@@ -108,6 +120,7 @@ class Prepared:
         init: ``(K, D+1, D+1)`` warm-start poses, translations normalised.
         centre: ``(D,)`` normalised world centre of the warm-start trajectory (occupancy input
             is ``world - centre``).
+        normals: ``(M, D)`` local unit normals of ``points`` (``loss.chamfer="plane"``), else None.
     """
 
     dim: int
@@ -151,20 +164,21 @@ def prepare(
     d = seq.dim
     init[:, :d, d] /= scale
     assert seq.origins is not None
-    f32 = dict(dtype=torch.float32, device=device)
+
+    def f32(x: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(x, dtype=torch.float32, device=device)
+
     return Prepared(
         dim=d,
         scale=scale,
-        points=torch.as_tensor(np.concatenate(frames), **f32),
+        points=f32(np.concatenate(frames)),
         starts=np.r_[0, np.cumsum(counts)].astype(np.int64),
-        decoder_points=torch.as_tensor(dec, **f32),
-        origins=torch.as_tensor(seq.origins / scale, **f32),
-        init=torch.as_tensor(init, **f32),
-        centre=torch.as_tensor(init[:, :d, d].mean(0), **f32),
+        decoder_points=f32(dec),
+        origins=f32(seq.origins / scale),
+        init=f32(init),
+        centre=f32(init[:, :d, d].mean(0)),
         normals=(
-            torch.as_tensor(np.concatenate([losses.frame_normals(f) for f in frames]), **f32)
-            if config.loss.chamfer == "plane"
-            else None
+            f32(np.concatenate([losses.frame_normals(f) for f in frames])) if config.loss.chamfer == "plane" else None
         ),
     )
 
@@ -506,7 +520,12 @@ def _optimize(
             nn_idx, _ = losses.nearest_in_frame(world.detach().cpu().numpy(), owner, src, target)
             clock.lap("nearest_neighbours")
             terms["chamfer"] = losses.chamfer_matches(
-                world, src, nn_idx, robust=lc.robust, threshold=threshold(it), normals=normals
+                world,
+                src,
+                nn_idx,
+                robust=lc.robust,
+                threshold=threshold(it),
+                normals=normals,
             )
             clock.lap("chamfer")
         if lc.occupancy_weight > 0:

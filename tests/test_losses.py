@@ -11,6 +11,15 @@ from strep_core import losses
 from strep_core.model import OccupancyMLP
 
 
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """Tiny networks: one thread avoids the cost of waking a pool on a shared CPU."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 def _grid(n: int = 10, spacing: float = 1.0) -> np.ndarray:
     x, y = np.meshgrid(np.arange(n) * spacing, np.arange(n) * spacing)
     return np.c_[x.ravel(), y.ravel()]
