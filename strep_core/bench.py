@@ -23,6 +23,10 @@ their reference trajectories barely translate (7-Scenes windows: a few cm; the b
 all but four share one position), so only the map fixes a rigid alignment (as `point_l2` does).
 
 ``--quick`` shrinks every suite (fewer sequences, frames and iterations) to finish in minutes.
+
+``--executor ray`` runs every (case, method) pair as one Ray task of ``--ray-cpus`` CPUs on the
+cluster at ``--ray-address`` (`run_cases_ray`); rows, table and JSON are the same. Ray is an
+optional extra, imported only then; every node needs strep-studio and the data at the same path.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ import argparse
 import json
 import math
 import platform
+import re
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
@@ -169,7 +174,8 @@ def case_config(case: BenchCase, method: str, quick: bool, seq: Sequence) -> Run
     return cfg
 
 
-def run_case(case: BenchCase, methods: list[str], quick: bool) -> list[dict[str, Any]]:
+def run_case(case: BenchCase, methods: list[str], quick: bool, threads: int | None = None) -> list[dict[str, Any]]:
+    """Run each method on the case; ``threads`` (torch CPU threads) overrides the configs' default."""
     from strep_core.methods import run
 
     seq = case.load()
@@ -177,7 +183,8 @@ def run_case(case: BenchCase, methods: list[str], quick: bool) -> list[dict[str,
     for m in methods:
         t0 = time.perf_counter()
         try:
-            res = run(seq, case_config(case, m, quick, seq))
+            cfg = case_config(case, m, quick, seq)
+            res = run(seq, cfg if threads is None else cfg.model_copy(update={"threads": threads}))
             row = {k: v for k, v in res.metrics.items() if isinstance(v, (int, float, str)) or v is None}
             row["status"] = "ok"
         except Exception as exc:  # a failing method is a result, not a crash of the benchmark
@@ -339,6 +346,58 @@ def machine_info() -> dict[str, Any]:
     }
 
 
+def run_cases_ray(
+    cases: list[BenchCase], methods: list[str], quick: bool, *, address: str = "local", cpus: int = 1
+) -> list[dict[str, Any]]:
+    """`run_case` for every (case, method) pair as one Ray task of ``cpus`` CPUs (and threads).
+
+    Rows come back in the order of the sequential loop. Uses this process's Ray connection when
+    there is one, else ``ray.init(address)`` (``local``: a new local runtime; ``auto``: the running
+    cluster; or a cluster address) and shuts it down afterwards.
+    """
+    from tqdm import tqdm
+
+    from strep_core.errors import ConfigError
+
+    try:
+        import ray
+    except ImportError as exc:
+        raise ConfigError("--executor ray needs Ray, an optional extra: pip install 'strep-studio[ray]'") from exc
+    owns = not ray.is_initialized()
+    if owns:
+        ray.init(address=address, include_dashboard=False)
+    try:
+        task = ray.remote(num_cpus=cpus, max_retries=0)(run_case)
+        pairs = [(case, m) for case in cases for m in methods]
+        refs = [task.remote(case, [m], quick, threads=cpus) for case, m in pairs]
+        pending = list(refs)
+        with tqdm(total=len(refs), desc="bench (ray)", unit="run") as progress:
+            while pending:
+                done, pending = ray.wait(pending, num_returns=1)
+                progress.update(len(done))
+        rows: list[dict[str, Any]] = []
+        for (case, m), ref in zip(pairs, refs, strict=True):
+            try:
+                rows.extend(ray.get(ref))
+            except ray.exceptions.RayError as exc:  # the task's worker died: a failed run, as in run_case
+                rows.append({"method": m, "status": f"failed: {_ray_reason(exc)}", "ate": None, "point_l2": None})
+                rows[-1].update({"suite": case.suite, "case": case.name, "unit": None})
+        for row in rows:  # a failed task's unit: that of its case's other rows
+            if row["unit"] is None:
+                row["unit"] = next((r["unit"] for r in rows if r["case"] == row["case"] and r["unit"]), "?")
+        return rows
+    finally:
+        if owns:
+            ray.shutdown()
+
+
+def _ray_reason(exc: BaseException) -> str:
+    """One line for a failed Ray task: the cause's type and first line, without terminal colours."""
+    cause = getattr(exc, "cause", None) or exc
+    lines = [line.strip() for line in re.sub(r"\x1b\[[0-9;]*m", "", str(cause)).splitlines() if line.strip()]
+    return f"{type(cause).__name__}: {lines[0] if lines else ''}"
+
+
 def main(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
@@ -358,13 +417,19 @@ def main(args: argparse.Namespace) -> int:
     cases = [c for s in suites for c in SUITES[s](data, args.quick)]
     rows: list[dict[str, Any]] = []
     started = time.perf_counter()
-    for case in tqdm(cases, desc="bench", unit="seq"):
-        rows.extend(run_case(case, methods, args.quick))
+    executor = getattr(args, "executor", "local")
+    if executor == "ray":
+        address = getattr(args, "ray_address", None) or "local"
+        rows = run_cases_ray(cases, methods, args.quick, address=address, cpus=getattr(args, "ray_cpus", 1))
+    else:
+        for case in tqdm(cases, desc="bench", unit="seq"):
+            rows.extend(run_case(case, methods, args.quick))
     summary = summarize(rows, methods)
     table = format_table(rows, summary, methods)
     report = {
         "machine": machine_info(),
         "quick": bool(args.quick),
+        "executor": executor,
         "wall_seconds": time.perf_counter() - started,
         "methods": methods,
         "rows": rows,

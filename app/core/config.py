@@ -6,20 +6,22 @@ security). The settings of a *run* are `strep_core.config.RunConfig`, the body o
 
 from __future__ import annotations
 
+import importlib.util
 import ipaddress
 import json
 import os
 from functools import lru_cache
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
-from pydantic import Field, SecretStr, field_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 MiB = 1024**2
 GiB = 1024**3
 
 LOOPBACK_NAMES = {"localhost", "localhost.localdomain", "ip6-localhost"}
+RAY_MISSING = "STREP_EXECUTOR=ray needs Ray, an optional extra: pip install 'strep-studio[ray]'"
 
 
 def is_loopback(host: str) -> bool:
@@ -93,6 +95,19 @@ class Settings(BaseSettings):
         description="modules imported by the service and by every worker, e.g. to register extra methods",
     )
 
+    executor: Literal["local", "ray"] = Field(
+        default="local",
+        description="where jobs run: 'local' worker processes, or 'ray' (one Ray actor per job; needs the ray extra)",
+    )
+    ray_address: str = Field(
+        default="local",
+        description="with executor=ray: 'local' starts a Ray runtime in the service, 'auto' joins the running "
+        "cluster (RAY_ADDRESS or `ray start`), anything else is a cluster address (e.g. 10.0.0.5:6379)",
+    )
+    ray_num_cpus: int | None = Field(
+        default=None, ge=1, le=4096, description="CPUs of the local Ray runtime (ray_address=local); None: all cores"
+    )
+
     @field_validator("cors_origins", "plugins", mode="before")
     @classmethod
     def _lists(cls, value: Any) -> Any:
@@ -102,6 +117,12 @@ class Settings(BaseSettings):
     @classmethod
     def _empty_token_is_none(cls, value: Any) -> Any:
         return None if isinstance(value, str) and not value.strip() else value
+
+    @model_validator(mode="after")
+    def _ray_installed(self) -> Settings:
+        if self.executor == "ray" and importlib.util.find_spec("ray") is None:
+            raise ValueError(RAY_MISSING)
+        return self
 
     @property
     def db_path(self) -> Path:

@@ -1,9 +1,10 @@
 """Job execution: a FIFO queue, at most N worker processes, one supervisor thread.
 
 Process model: one ``spawn`` process per job (`app.services.worker.run_job`), so a crash or
-a kill ends only that job. Each worker has its own pipe (no lock shared between processes,
-so a worker killed mid-write cannot wedge the others); the end of its pipe tells the
-supervisor the worker is gone, after every message it sent.
+a kill ends only that job; with ``executor="ray"`` one Ray actor per job instead, behind the
+same process-like handle and pipe (`app.services.executors`). Each worker has its own pipe
+(no lock shared between processes, so a worker killed mid-write cannot wedge the others); the
+end of its pipe tells the supervisor the worker is gone, after every message it sent.
 
 The supervisor thread owns the running workers. It waits on their pipes, their process
 sentinels and a wake-up pipe; it stores each round of events in one SQLite transaction,
@@ -24,8 +25,7 @@ import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from multiprocessing.context import SpawnContext, SpawnProcess
-from multiprocessing.synchronize import Event as MpEvent
+from multiprocessing.context import SpawnContext
 from pathlib import Path
 from typing import Any
 
@@ -33,8 +33,8 @@ from pydantic import ValidationError
 
 from app.core.config import Settings
 from app.services.events import Broadcaster
-from app.services.sequences import SequenceService, describe_exit, new_id
-from app.services.worker import run_job
+from app.services.executors import WorkerHandle, make_executor
+from app.services.sequences import SequenceService, new_id
 from app.store import EventIn, StatusChange, Store, StoredEvent, now_iso
 from strep_core.config import RunConfig
 
@@ -48,9 +48,8 @@ MAX_MESSAGES_PER_ROUND = 500  # per worker, so one chatty worker cannot starve t
 @dataclass
 class _Worker:
     job_id: str
-    proc: SpawnProcess
+    proc: WorkerHandle  # a local process, or a Ray actor seen as one
     conn: multiprocessing.connection.Connection
-    cancel: MpEvent
     done: bool = False
     eof: bool = False
     cancel_deadline: float | None = None
@@ -75,6 +74,7 @@ class JobService:
         self.broadcaster = broadcaster
         self.sequences = sequences
         self.ctx = ctx
+        self.executor = make_executor(settings, ctx)
         self._workers: dict[str, _Worker] = {}
         self._commands: queue.SimpleQueue[tuple[str, str]] = queue.SimpleQueue()
         self._wake_r, self._wake_w = ctx.Pipe(duplex=False)
@@ -110,6 +110,7 @@ class JobService:
         if changes:
             log.warning("marking %d job(s) interrupted", len(changes))
             self.store.apply(changes)
+        self.executor.start()
         self._thread = threading.Thread(target=self._run, name="strep-supervisor", daemon=True)
         self._thread.start()
 
@@ -127,7 +128,7 @@ class JobService:
         if pending:
             self._store_and_publish(pending)
         for w in workers:
-            w.cancel.set()
+            w.proc.cancel()
             if w.proc.is_alive():
                 w.proc.terminate()
         deadline = time.monotonic() + KILL_AFTER_TERMINATE
@@ -137,6 +138,7 @@ class JobService:
                 w.proc.kill()
                 w.proc.join(timeout=5)
             w.conn.close()
+            w.proc.close()
             shutil.rmtree(self.tmp_results / w.job_id, ignore_errors=True)
         changes = [
             StatusChange(
@@ -151,6 +153,7 @@ class JobService:
         if changes:
             self._store_and_publish(changes)
         self._workers.clear()
+        self.executor.close()
         self._wake_r.close()
         self._wake_w.close()
 
@@ -288,6 +291,8 @@ class JobService:
                     w.done = True
                     fields: tuple[tuple[str, Any], ...] = (("metrics", metrics), ("files", files))
                     items.append(StatusChange(w.job_id, ("running",), status, error, fields))
+                elif msg[0] == "pid":  # a Ray worker's process, known once its actor has started
+                    self.store.set_job_fields(w.job_id, pid=int(msg[1]))
         except (EOFError, OSError):
             w.eof = True
         except Exception:  # an unreadable message: treat the worker as broken
@@ -309,7 +314,7 @@ class JobService:
                 return
             w = self._workers.get(job_id)
             if command == "cancel" and w is not None and w.cancel_deadline is None and not w.done:
-                w.cancel.set()
+                w.proc.cancel()
                 w.cancel_deadline = time.monotonic() + self.settings.cancel_grace_seconds
 
     def _enforce_deadlines(self) -> None:
@@ -349,6 +354,7 @@ class JobService:
             w.proc.join(timeout=0)
             code = w.proc.exitcode
             w.conn.close()
+            w.proc.close()
             del self._workers[w.job_id]
             self._start_pending = True
             shutil.rmtree(self.tmp_results / w.job_id, ignore_errors=True)
@@ -369,7 +375,7 @@ class JobService:
                     w.job_id,
                     ("running",),
                     "failed",
-                    f"the worker process {describe_exit(code)} before it reported a result",
+                    w.proc.failure_message(),
                     (("exit_code", code),),
                 )
             self._store_and_publish([change])
@@ -418,21 +424,16 @@ class JobService:
             "max_extract_bytes": self.settings.max_inflated_bytes,
             "plugins": list(self.settings.plugins),
         }
-        parent, child = self.ctx.Pipe(duplex=False)
-        cancel = self.ctx.Event()
-        proc = self.ctx.Process(target=run_job, args=(spec, child, cancel), name=f"strep-{job_id}", daemon=True)
         try:
-            proc.start()
+            proc, conn = self.executor.launch(spec, config.device)
         except Exception as exc:
             log.exception("cannot start the worker of %s", job_id)
-            parent.close()
             self._store_and_publish(
                 [StatusChange(job_id, ("running",), "failed", f"cannot start a worker process: {exc}")]
             )
             return False
-        finally:
-            child.close()
-        self._workers[job_id] = _Worker(job_id=job_id, proc=proc, conn=parent, cancel=cancel)
-        self.store.set_job_fields(job_id, pid=proc.pid)
-        log.info("job %s (%s) started in process %s", job_id, job["method"], proc.pid)
+        self._workers[job_id] = _Worker(job_id=job_id, proc=proc, conn=conn)
+        if proc.pid is not None:
+            self.store.set_job_fields(job_id, pid=proc.pid)
+        log.info("job %s (%s) started (%s executor, process %s)", job_id, job["method"], self.executor.name, proc.pid)
         return True
