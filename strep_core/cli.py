@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from collections.abc import Sequence as Seq
 from pathlib import Path
@@ -197,6 +198,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return bench_main(args)
 
 
+def cmd_reproduce(args: argparse.Namespace) -> int:
+    from strep_core.reproduce import main as reproduce_main
+
+    return reproduce_main(args)
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
     from app.server import serve
 
@@ -257,7 +264,44 @@ def make_parser() -> argparse.ArgumentParser:
     bench.add_argument("--suites", help="comma-separated subset of suites")
     bench.add_argument("--data", type=Path, help="folder of the shared real data (default ../shared/data)")
     bench.add_argument("--docs", type=Path, help="also write the table into this markdown file")
+    bench.add_argument(
+        "--executor",
+        choices=["local", "ray"],
+        default="local",
+        help="local: one run after another here; ray: every (sequence, method) run as a Ray task (needs the ray extra)",
+    )
+    bench.add_argument(
+        "--ray-address",
+        default=os.environ.get("STREP_RAY_ADDRESS", "local"),
+        help="with --executor ray: local (start a runtime here), auto (the running cluster) or a cluster address "
+        "(default $STREP_RAY_ADDRESS or local)",
+    )
+    bench.add_argument("--ray-cpus", type=int, default=1, help="with --executor ray: CPUs (and torch threads) per run")
     bench.set_defaults(fn=cmd_bench)
+
+    rep = sub.add_parser(
+        "reproduce",
+        help="test each claim of the STREP paper with seeded benchmark runs and write a report with verdicts",
+    )
+    rep.add_argument(
+        "--quick", action="store_true", help="about a minute (CI): short sequences, few iterations, two seeds"
+    )
+    rep.add_argument(
+        "--out",
+        "-o",
+        default="runs/reproduce",
+        help="cache of finished runs and trained models, per mode (default runs/reproduce); reruns resume from it",
+    )
+    rep.add_argument(
+        "--docs",
+        type=Path,
+        help="the markdown report; figures and JSON go to a folder of the same stem beside it "
+        "(default docs/reproduction.md; with --quick OUT/quick/reproduction.md)",
+    )
+    rep.add_argument("--data", type=Path, help="folder of the shared real data (default ../shared/data)")
+    rep.add_argument("--fresh", action="store_true", help="ignore cached runs and run everything again")
+    rep.add_argument("--no-progress", action="store_true", help="no progress bar")
+    rep.set_defaults(fn=cmd_reproduce)
 
     serve = sub.add_parser("serve", help="start the web service (REST API, live events, web page)")
     serve.add_argument("--host", help="bind address (default 127.0.0.1; others need STREP_API_TOKEN)")
