@@ -24,9 +24,10 @@ all but four share one position), so only the map fixes a rigid alignment (as `p
 
 ``--quick`` shrinks every suite (fewer sequences, frames and iterations) to finish in minutes.
 
-``--executor ray`` runs every (case, method) pair as one Ray task of ``--ray-cpus`` CPUs on the
-cluster at ``--ray-address`` (`run_cases_ray`); rows, table and JSON are the same. Ray is an
-optional extra, imported only then; every node needs strep-studio and the data at the same path.
+`main` takes an optional ``runner`` (cases, methods, quick -> rows) in place of the loop over
+`run_case`: ``strep bench --executor ray`` passes `app.bench_ray.run_cases_ray`, which runs every
+(case, method) pair as one Ray task; rows, table and JSON are the same. Cluster code stays in
+``app/``.
 """
 
 from __future__ import annotations
@@ -35,7 +36,6 @@ import argparse
 import json
 import math
 import platform
-import re
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
@@ -346,59 +346,10 @@ def machine_info() -> dict[str, Any]:
     }
 
 
-def run_cases_ray(
-    cases: list[BenchCase], methods: list[str], quick: bool, *, address: str = "local", cpus: int = 1
-) -> list[dict[str, Any]]:
-    """`run_case` for every (case, method) pair as one Ray task of ``cpus`` CPUs (and threads).
-
-    Rows come back in the order of the sequential loop. Uses this process's Ray connection when
-    there is one, else ``ray.init(address)`` (``local``: a new local runtime; ``auto``: the running
-    cluster; or a cluster address) and shuts it down afterwards.
-    """
-    from tqdm import tqdm
-
-    from strep_core.errors import ConfigError
-
-    try:
-        import ray
-    except ImportError as exc:
-        raise ConfigError("--executor ray needs Ray, an optional extra: pip install 'strep-studio[ray]'") from exc
-    owns = not ray.is_initialized()
-    if owns:
-        ray.init(address=address, include_dashboard=False)
-    try:
-        task = ray.remote(num_cpus=cpus, max_retries=0)(run_case)
-        pairs = [(case, m) for case in cases for m in methods]
-        refs = [task.remote(case, [m], quick, threads=cpus) for case, m in pairs]
-        pending = list(refs)
-        with tqdm(total=len(refs), desc="bench (ray)", unit="run") as progress:
-            while pending:
-                done, pending = ray.wait(pending, num_returns=1)
-                progress.update(len(done))
-        rows: list[dict[str, Any]] = []
-        for (case, m), ref in zip(pairs, refs, strict=True):
-            try:
-                rows.extend(ray.get(ref))
-            except ray.exceptions.RayError as exc:  # the task's worker died: a failed run, as in run_case
-                rows.append({"method": m, "status": f"failed: {_ray_reason(exc)}", "ate": None, "point_l2": None})
-                rows[-1].update({"suite": case.suite, "case": case.name, "unit": None})
-        for row in rows:  # a failed task's unit: that of its case's other rows
-            if row["unit"] is None:
-                row["unit"] = next((r["unit"] for r in rows if r["case"] == row["case"] and r["unit"]), "?")
-        return rows
-    finally:
-        if owns:
-            ray.shutdown()
-
-
-def _ray_reason(exc: BaseException) -> str:
-    """One line for a failed Ray task: the cause's type and first line, without terminal colours."""
-    cause = getattr(exc, "cause", None) or exc
-    lines = [line.strip() for line in re.sub(r"\x1b\[[0-9;]*m", "", str(cause)).splitlines() if line.strip()]
-    return f"{type(cause).__name__}: {lines[0] if lines else ''}"
-
-
-def main(args: argparse.Namespace) -> int:
+def main(
+    args: argparse.Namespace, runner: Callable[[list[BenchCase], list[str], bool], list[dict[str, Any]]] | None = None
+) -> int:
+    """Run the benchmark; ``runner`` replaces the sequential loop over `run_case` (see the module docstring)."""
     from tqdm import tqdm
 
     from strep_core.errors import ConfigError
@@ -418,9 +369,8 @@ def main(args: argparse.Namespace) -> int:
     rows: list[dict[str, Any]] = []
     started = time.perf_counter()
     executor = getattr(args, "executor", "local")
-    if executor == "ray":
-        address = getattr(args, "ray_address", None) or "local"
-        rows = run_cases_ray(cases, methods, args.quick, address=address, cpus=getattr(args, "ray_cpus", 1))
+    if runner is not None:
+        rows = runner(cases, methods, args.quick)
     else:
         for case in tqdm(cases, desc="bench", unit="seq"):
             rows.extend(run_case(case, methods, args.quick))

@@ -195,7 +195,14 @@ def cmd_info(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from strep_core.bench import main as bench_main
 
-    return bench_main(args)
+    if args.executor != "ray":
+        return bench_main(args)
+    from app.bench_ray import run_cases_ray  # cluster code lives in app/, imported only when asked
+
+    def runner(cases: list[Any], methods: list[str], quick: bool) -> list[dict[str, Any]]:
+        return run_cases_ray(cases, methods, quick, address=args.ray_address or "local", cpus=args.ray_cpus)
+
+    return bench_main(args, runner=runner)
 
 
 def cmd_reproduce(args: argparse.Namespace) -> int:

@@ -322,7 +322,8 @@ def test_bench_spreads_runs_over_ray(ray_runtime: None, tmp_path: Path, shared_d
 
 
 def test_bench_reports_a_dead_ray_task_as_a_failed_run(ray_runtime: None) -> None:
-    from strep_core.bench import BenchCase, run_cases_ray
+    from app.bench_ray import run_cases_ray
+    from strep_core.bench import BenchCase
 
     # nested functions: Ray ships them by value (this test module is not importable by its workers)
     def die() -> Any:
