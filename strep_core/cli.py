@@ -234,7 +234,7 @@ def make_parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--init",
         choices=["auto", "identity", "odometry", "ground_truth", "icp", "multiway", "kiss", "fpfh"],
-        help="initial guess (auto: odometry if present else identity; learned methods add an ICP warm start)",
+        help="initial guess (auto: odometry if present else identity; learned methods add a pose-graph warm start)",
     )
     run.add_argument("--device", choices=["cpu", "cuda", "auto"])
     run.add_argument("--threads", type=int, help="CPU threads for torch (default: all cores)")

@@ -52,6 +52,19 @@ class ClassicalConfig(_Section):
     icp_kernel: float | None = Field(
         default=None, gt=0, le=10, description="Tukey kernel width, fraction of the stage's distance; None: L2"
     )
+    icp_yaw_search: float = Field(
+        default=0.0,
+        ge=0,
+        le=180,
+        description="2D ICP: also start the coarsest stage from the guess turned by up to +-this many "
+        "degrees (every icp_yaw_step) and keep the best match; 0: the guess alone",
+    )
+    icp_motion_prior: Literal["init", "velocity"] = Field(
+        default="init",
+        description="incremental ICP's guess for each pair: the initial guess's relative motion, or the "
+        "previous pair's estimated motion (constant velocity)",
+    )
+    icp_yaw_step: float = Field(default=10.0, gt=0, le=180, description="2D ICP yaw search step (degrees)")
     local_map_frames: int = Field(
         default=5, ge=1, le=50, description="icp: register each frame to the union of this many previous ones"
     )
@@ -235,7 +248,7 @@ class RunConfig(_Section):
     init: InitName = Field(
         default="auto",
         description="initial guess: auto = odometry if the data has it, else identity, "
-        "and for learned methods an ICP warm start from that",
+        "and for learned methods a pose-graph (multiway) warm start from that",
     )
     frames: str | None = Field(default=None, description="frame selection start:stop[:step]")
     classical: ClassicalConfig = Field(default_factory=ClassicalConfig)

@@ -61,6 +61,10 @@ class RegistrationParams:
         normal_max_nn: 3D normals: at most this many neighbours within the radius.
         local_map: incremental ICP registers frame k to the union of this many previous frames.
         threads: CPU threads Open3D may use (1 makes runs bit-for-bit repeatable).
+        yaw_search: extra yaw offsets (radians) tried as starting guesses of the coarsest ICP
+            stage (see `register_clouds`); empty: the initial guess alone.
+        velocity_prior: incremental ICP starts each pair from the previous pair's estimated
+            motion (constant velocity) instead of the initial guess's relative motion.
     """
 
     dim: int
@@ -75,6 +79,8 @@ class RegistrationParams:
     normal_max_nn: int = 30
     local_map: int = 1
     threads: int = 1
+    yaw_search: tuple[float, ...] = ()
+    velocity_prior: bool = False
 
     @property
     def planar(self) -> bool:
@@ -103,7 +109,18 @@ def resolve_params(seq: Sequence, cfg: ClassicalConfig) -> RegistrationParams:
         normal_max_nn=cfg.normal_max_nn,
         local_map=cfg.local_map_frames,
         threads=cfg.threads,
+        yaw_search=yaw_offsets(cfg.icp_yaw_search, cfg.icp_yaw_step) if seq.dim == 2 else (),
+        velocity_prior=cfg.icp_motion_prior == "velocity",
     )
+
+
+def yaw_offsets(half_width_deg: float, step_deg: float) -> tuple[float, ...]:
+    """Nonzero yaw offsets ``+-step, +-2 step, ...`` up to ``half_width`` (degrees in, radians out),
+    nearest first."""
+    if half_width_deg <= 0 or step_deg <= 0:
+        return ()
+    n = int(np.floor(half_width_deg / step_deg + 1e-9))
+    return tuple(float(np.radians(sign * i * step_deg)) for i in range(1, n + 1) for sign in (1, -1))
 
 
 @dataclass(frozen=True)
@@ -297,6 +314,7 @@ def register_clouds(
     planar: bool = False,
     min_fitness: float = 0.0,
     kernel: float | None = None,
+    yaw_search: tuple[float, ...] = (),
 ) -> PairResult:
     """Point-to-plane ICP of prepared clouds (``target`` needs normals), coarse to fine.
 
@@ -312,6 +330,11 @@ def register_clouds(
             the previous stage left it (the initial guess if it is the first). This stops the
             rare runaway of point-to-plane ICP on a few degenerate correspondences.
         kernel: Tukey robust-kernel width as a fraction of each stage's distance (``None``: L2).
+        yaw_search: yaw offsets (radians, about the source's origin, i.e. its sensor) added to
+            ``init`` as extra starting guesses. The coarsest stage runs from each; the result
+            that matches the most source points within the *finest* distance (ties: the lower
+            RMSE) goes on to the finer stages. Point-to-plane ICP converges only from within
+            about 10 degrees; laser keyframes turn by up to 20 to 30 degrees.
     """
     from strep_core._open3d import o3d
 
@@ -321,6 +344,18 @@ def register_clouds(
         raise RegistrationError("register_clouds needs at least one scale")
     current = project_planar(init) if planar else np.asarray(init, dtype=np.float64)
     fitness, rmse = 0.0, 0.0
+    if yaw_search:
+        current = _best_yaw_start(
+            source,
+            target,
+            current,
+            yaw_search,
+            max_correspondence * scales[0],
+            max_correspondence * min(scales),
+            criteria=criteria,
+            planar=planar,
+            min_fitness=min_fitness,
+        )
     for scale in scales:
         distance = max_correspondence * scale
         estimation = (
@@ -336,6 +371,43 @@ def register_clouds(
             current = project_planar(current)
         fitness, rmse = float(result.fitness), float(result.inlier_rmse)
     return PairResult(transformation=current, fitness=fitness, inlier_rmse=rmse)
+
+
+def _best_yaw_start(
+    source: o3d.geometry.PointCloud,
+    target: o3d.geometry.PointCloud,
+    init: np.ndarray,
+    offsets: tuple[float, ...],
+    coarse: float,
+    fine: float,
+    *,
+    criteria: Any,
+    planar: bool,
+    min_fitness: float,
+) -> np.ndarray:
+    """The best of ``init`` and ``init`` turned by each yaw offset, each refined by one coarse
+    ICP stage, scored by fitness (then RMSE) within ``fine`` (see `register_clouds`)."""
+    from strep_core._open3d import o3d
+
+    reg = o3d.pipelines.registration
+    estimation = reg.TransformationEstimationPointToPlane()
+    best, best_key = init, (-1.0, 0.0)
+    for yaw in (0.0, *offsets):
+        turn = np.eye(4)
+        c, s = np.cos(yaw), np.sin(yaw)
+        turn[:2, :2] = [[c, -s], [s, c]]
+        start = init @ turn
+        result = reg.registration_icp(source, target, coarse, start, estimation, criteria)
+        if result.fitness <= 0.0 or result.fitness < min_fitness:
+            continue
+        candidate = np.asarray(result.transformation)
+        if planar:
+            candidate = project_planar(candidate)
+        ev = reg.evaluate_registration(source, target, fine, candidate)
+        key = (round(float(ev.fitness), 3), -float(ev.inlier_rmse))
+        if key > best_key:
+            best, best_key = candidate, key
+    return best
 
 
 def register_pair(
@@ -373,6 +445,7 @@ def register_pair(
             planar=dim == 2,
             min_fitness=params.min_fitness,
             kernel=params.kernel,
+            yaw_search=params.yaw_search,
         )
     return from_se3(res.transformation, dim), res
 
@@ -447,6 +520,8 @@ def incremental_icp(
         pairs: list[PairResult] = []
         for k in range(1, k_frames):
             guess = g.relative(init3[k - 1], init3[k])
+            if params.velocity_prior and pairs:
+                guess = pairs[-1].transformation
             target = clouds[k - 1]
             if params.local_map > 1:
                 target = _local_map(clouds, poses3, k, params)
@@ -460,6 +535,7 @@ def incremental_icp(
                 planar=params.planar,
                 min_fitness=params.min_fitness,
                 kernel=params.kernel,
+                yaw_search=params.yaw_search,
             )
             pairs.append(res)
             poses3[k] = poses3[k - 1] @ res.transformation

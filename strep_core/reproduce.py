@@ -57,7 +57,7 @@ VERDICTS = ("holds", "holds partly", "does not hold")
 LEARNED = ("deepmapping", "strep-nolink", "strep")
 LABEL = {"deepmapping": "DeepMapping", "strep-nolink": "STREP no-link", "strep": "STREP"}
 SETTINGS = {
-    "warm": ("auto", "ICP warm start (the benchmark's default, `init=auto`)"),
+    "warm": ("icp", "ICP warm start (`init=icp`)"),
     "cold": ("identity", "from identity (`init=identity`, as in the paper)"),
 }
 TRANSFER_MODES = ("scratch", "frozen", "frozen-short")
@@ -286,14 +286,14 @@ def build_runs(plan: Plan, data: Path) -> list[RunSpec]:
         prev = None
         for j, case in enumerate(tr["train"]):
             out = f"models/{plan.mode}-seed{s}-step{j}.pt"
-            runs.append(RunSpec("transfer", case, "strep", "train", "auto", s, n, model_in=prev, model_out=out))
+            runs.append(RunSpec("transfer", case, "strep", "train", "icp", s, n, model_in=prev, model_out=out))
             prev = out
         for group in ("same-map", "other-map"):
             for case in tr[group]:
-                runs.append(RunSpec("transfer", case, "strep", "scratch", "auto", s, n))
-                runs.append(RunSpec("transfer", case, "strep", "frozen", "auto", s, n, model_in=prev, freeze=True))
+                runs.append(RunSpec("transfer", case, "strep", "scratch", "icp", s, n))
+                runs.append(RunSpec("transfer", case, "strep", "frozen", "icp", s, n, model_in=prev, freeze=True))
                 runs.append(
-                    RunSpec("transfer", case, "strep", "frozen-short", "auto", s, short, model_in=prev, freeze=True)
+                    RunSpec("transfer", case, "strep", "frozen-short", "icp", s, short, model_in=prev, freeze=True)
                 )
     return runs
 
@@ -310,7 +310,7 @@ _OVERHEAD = 0.3  # per run: metrics, final pass
 def estimate_run(spec: RunSpec) -> float:
     d, k = spec.case.dim, spec.case.frames
     it = spec.planned_iterations() * k * _ITER_PER_FRAME[d] * (0.8 if spec.freeze else 1.0)
-    warm = _ICP_PER_FRAME[d] * k if spec.init == "auto" else 0.0
+    warm = _ICP_PER_FRAME[d] * k if spec.init == "icp" else 0.0
     return it + warm + _OVERHEAD
 
 

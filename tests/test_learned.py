@@ -141,6 +141,25 @@ def test_zero_iterations_return_the_warm_start(small: Sequence) -> None:
     assert np.allclose(result.poses, small.initial_poses, atol=1e-4)
 
 
+def test_default_warm_start_is_the_pose_graph_from_the_base_guess(small: Sequence) -> None:
+    cfg = _config(iterations=0).model_copy(update={"init": "auto"})
+    result = run(small, cfg)
+    pose_graph = run(small, RunConfig(method="multiway", threads=1))
+    assert result.initial_guess == "multiway (from odometry)"
+    np.testing.assert_allclose(result.poses, pose_graph.poses, atol=1e-4)
+    assert result.metrics["initial_ate"] == pytest.approx(pose_graph.metrics["ate"], rel=1e-6)
+
+
+def test_strep_lowers_the_ate_of_an_icp_warm_start(small: Sequence) -> None:
+    """The issue's check with an explicit ``init=icp`` (the default warm start is the pose graph)."""
+    result = run(small, _config(iterations=60).model_copy(update={"init": "icp"}))
+    assert result.initial_guess == "icp (from odometry)"
+    assert result.metrics["ate"] < 0.8 * result.metrics["initial_ate"], (
+        result.metrics["initial_ate"],
+        result.metrics["ate"],
+    )
+
+
 def test_same_seed_same_poses(small: Sequence) -> None:
     a = run(small, _config(iterations=10))
     b = run(small, _config(iterations=10))

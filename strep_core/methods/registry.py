@@ -128,16 +128,23 @@ def base_guess(seq: Sequence) -> tuple[str, np.ndarray]:
     return "identity", g.identity(seq.dim, len(seq))
 
 
+# The learned methods' default warm start. The pose graph refines incremental ICP with loop
+# closures; the networks then refine it. Measured (strep, 60 iterations, three 96-frame sim2d
+# trajectories): from icp 1.25 / 0.268 / 0.826 px, from multiway 0.151 / 0.478 / 0.436 px.
+LEARNED_WARM_START = "multiway"
+
+
 def initial_guess(seq: Sequence, config: RunConfig, ctx: RunContext, *, learned: bool) -> tuple[str, np.ndarray]:
     """Resolve ``config.init`` into a label and ``(K, D+1, D+1)`` starting poses.
 
-    ``auto`` is the base guess (odometry or identity) for classical methods, and an ICP warm
-    start from that base guess for learned ones. ``icp``/``multiway``/``kiss`` run that
+    ``auto`` is the base guess (odometry or identity) for classical methods, and a pose-graph
+    (``multiway``: incremental ICP plus loop closures) warm start from that base guess for
+    learned ones. ``icp``/``multiway``/``kiss`` run that
     classical method from the base guess first.
     """
     init = config.init
     if init == "auto":
-        init = "icp" if learned else "base"
+        init = LEARNED_WARM_START if learned else "base"
     if init == "base":
         return base_guess(seq)
     if init == "identity":
