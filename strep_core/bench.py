@@ -5,7 +5,9 @@ Suites (``--suites``):
 * ``v1_pose0``: DeepMapping's public 2D sequence (real file in the shared data), pixels;
 * ``sim2d``: simulated 2D lidar like the paper's, 20 trajectories over 3 maps (seeded), pixels;
 * ``carmen``: real laser logs, intel and aces windows 0:100 and 300:400, metres, from identity
-  (the logs' odometry is dropped so every method starts from the same guess);
+  (the logs' odometry equals their corrected poses, so it is dropped and every method starts
+  from the same guess); every method's ICP searches yaw and uses a constant-velocity prior
+  (`CARMEN_CLASSICAL`);
 * ``sim3d``: simulated indoor depth like the paper's AVD setting, 16-frame trajectories, metres;
 * ``sevenscenes``: real Kinect depth (Microsoft 7-Scenes, frames 0-99 in the shared data),
   16-frame windows of every 4th frame (0:64:4, 16:80:4, 36:100:4) and of every frame (0:16,
@@ -337,8 +339,9 @@ def write_docs(path: Path, table: str, report: dict[str, Any]) -> None:
         f"Latest `strep bench{' --quick' if report['quick'] else ''}` ({mode} mode): {len(report['rows'])} runs in "
         f"{report['wall_seconds']:.0f} s on {m['platform']}, {m['cpu_count']} CPU cores, torch {m['torch']}"
         f"{', GPU ' + m['cuda'] if m['cuda'] else ', no GPU'}.\n\n"
-        "Cells: ATE / point L2 (in the sequence unit: px or m) / wall seconds. Learned methods start from the ICP "
-        "warm start; CARMEN windows start every method from identity.\n\n"
+        "Cells: ATE / point L2 (in the sequence unit: px or m) / wall seconds. Learned methods start from the "
+        "pose-graph (`multiway`) warm start; CARMEN windows start every method from identity, with ICP's yaw "
+        "search and constant-velocity prior.\n\n"
         f"{table}\n"
     )
     Path(path).write_text(text)

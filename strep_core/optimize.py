@@ -1,7 +1,8 @@
 """The per-sequence optimisation loop of the learned methods (strep, strep-nolink, deepmapping).
 
 `optimize` fits the networks of `strep_core.model` to one sequence from a warm start
-(``init_poses``, an ICP run by default), minimising with Adam
+(``init_poses``: by default the ``multiway`` pose graph, i.e. incremental ICP plus loop
+closures, from the data's odometry or identity), minimising with Adam
 
     L = chamfer_weight * Chamfer(frames, neighbours) + occupancy_weight * occupancy BCE
 
@@ -58,10 +59,23 @@ ATE in px; numbers from 100-iteration runs unless noted):
 * Defaults end to end (registry run, ICP warm start, 2 threads, quiet machine): strep
   0.37 px, strep-nolink 0.32 px, deepmapping 0.33 px after 300 iterations in about 60 s.
 
+* Warm start: the pose graph (`strep_core.methods.registry.LEARNED_WARM_START`). The design
+  measurements above were made from the ICP warm start; from the pose graph, 60 iterations
+  on three 96-frame simulated 2D trajectories: strep 0.151 / 0.478 / 0.436 px (mean 0.355)
+  against 1.25 / 0.268 / 0.826 px (mean 0.78) from ICP in the previous quick benchmark (pose
+  graph alone: 0.164 / 0.594 / 0.444); v1_pose0
+  after 300 iterations 0.288 px (pose graph 0.338, from ICP 0.38). The truncated Chamfer
+  objective itself ranks the pose graph's trajectory below ICP's on all 8 2D sequences tried,
+  so the choice is also the one the loss would make.
+
 Limits (measured): the corrections are found by gradient descent from the warm start, so a
-warm start with gross errors stays wrong. On CARMEN windows the ICP warm start from identity
-has pairs 10 to 90 degrees off and every learned variant ends within 0.03 m of it (4 to
-13 m ATE). From an odometry-like start on intel[0:100] (1 degree and 3 cm of noise per
+warm start with gross errors stays wrong, and drift that no pair of neighbouring frames sees
+is not corrected. On CARMEN windows (yaw search and velocity prior in the warm start's ICP)
+every learned variant ends within 0.03 m of its pose-graph start (0.14 to 1.97 m ATE),
+although started from the corrected poses themselves strep stays within 0.03 m of them
+on intel[0:100]: the loss has its minimum near the truth, but the 0.4 m of drift of the
+warm start lies in a basin the local Chamfer terms do not leave; larger loop radii or
+thresholds made it worse (0.45 to 1.18 m). From an odometry-like start on intel[0:100] (1 degree and 3 cm of noise per
 step, 0.65 m ATE; the window revisits no place) strep reached only 0.64 m where ICP reaches
 0.25 m: long drift without loop closures is poorly conditioned for per-frame absolute
 corrections.
