@@ -355,22 +355,52 @@ def register_clouds(
             criteria=criteria,
             planar=planar,
             min_fitness=min_fitness,
+            kernel=kernel,
         )
     for scale in scales:
-        distance = max_correspondence * scale
-        estimation = (
-            reg.TransformationEstimationPointToPlane()
-            if kernel is None
-            else reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=kernel * distance))
+        stage = _icp_stage(
+            source,
+            target,
+            current,
+            max_correspondence * scale,
+            kernel=kernel,
+            criteria=criteria,
+            planar=planar,
+            min_fitness=min_fitness,
         )
-        result = reg.registration_icp(source, target, distance, current, estimation, criteria)
-        if result.fitness <= 0.0 or result.fitness < min_fitness:
+        if stage is None:
             break
-        current = np.asarray(result.transformation)
-        if planar:
-            current = project_planar(current)
-        fitness, rmse = float(result.fitness), float(result.inlier_rmse)
+        current, fitness, rmse = stage
     return PairResult(transformation=current, fitness=fitness, inlier_rmse=rmse)
+
+
+def _icp_stage(
+    source: o3d.geometry.PointCloud,
+    target: o3d.geometry.PointCloud,
+    start: np.ndarray,
+    distance: float,
+    *,
+    kernel: float | None,
+    criteria: Any,
+    planar: bool,
+    min_fitness: float,
+) -> tuple[np.ndarray, float, float] | None:
+    """One point-to-plane ICP stage at ``distance`` from ``start``: ``(transform, fitness,
+    inlier RMSE)``, projected onto SE(2) when ``planar``; ``None`` when it matches no source
+    point or fewer than ``min_fitness`` of them."""
+    from strep_core._open3d import o3d
+
+    reg = o3d.pipelines.registration
+    estimation = (
+        reg.TransformationEstimationPointToPlane()
+        if kernel is None
+        else reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=kernel * distance))
+    )
+    result = reg.registration_icp(source, target, distance, start, estimation, criteria)
+    if result.fitness <= 0.0 or result.fitness < min_fitness:
+        return None
+    transform = np.asarray(result.transformation)
+    return (project_planar(transform) if planar else transform), float(result.fitness), float(result.inlier_rmse)
 
 
 def _best_yaw_start(
@@ -384,26 +414,31 @@ def _best_yaw_start(
     criteria: Any,
     planar: bool,
     min_fitness: float,
+    kernel: float | None,
 ) -> np.ndarray:
     """The best of ``init`` and ``init`` turned by each yaw offset, each refined by one coarse
     ICP stage, scored by fitness (then RMSE) within ``fine`` (see `register_clouds`)."""
     from strep_core._open3d import o3d
 
-    reg = o3d.pipelines.registration
-    estimation = reg.TransformationEstimationPointToPlane()
     best, best_key = init, (-1.0, 0.0)
     for yaw in (0.0, *offsets):
         turn = np.eye(4)
         c, s = np.cos(yaw), np.sin(yaw)
         turn[:2, :2] = [[c, -s], [s, c]]
-        start = init @ turn
-        result = reg.registration_icp(source, target, coarse, start, estimation, criteria)
-        if result.fitness <= 0.0 or result.fitness < min_fitness:
+        stage = _icp_stage(
+            source,
+            target,
+            init @ turn,
+            coarse,
+            kernel=kernel,
+            criteria=criteria,
+            planar=planar,
+            min_fitness=min_fitness,
+        )
+        if stage is None:
             continue
-        candidate = np.asarray(result.transformation)
-        if planar:
-            candidate = project_planar(candidate)
-        ev = reg.evaluate_registration(source, target, fine, candidate)
+        candidate = stage[0]
+        ev = o3d.pipelines.registration.evaluate_registration(source, target, fine, candidate)
         key = (round(float(ev.fitness), 3), -float(ev.inlier_rmse))
         if key > best_key:
             best, best_key = candidate, key
