@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import asyncio
 import io
-import json
 import os
 import signal
 import time
@@ -21,6 +20,7 @@ from typing import Any
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from helpers import FINAL, parse_sse, wait_until
 
 from app.core.config import InsecureSettings, Settings
 from app.main import create_app
@@ -32,36 +32,10 @@ from strep_core.events import parse_event
 from strep_core.io.npz import write_npz
 from strep_core.methods import available
 
-FINAL = {"succeeded", "failed", "cancelled", "interrupted"}
 LONG = 100_000  # demo iterations: far longer than any test waits; such jobs are always cancelled
 
 
 # ---- helpers ---------------------------------------------------------------------------------
-
-
-def parse_sse(text: str) -> list[dict[str, Any]]:
-    """Events of a ``text/event-stream`` body: dicts with ``id``, ``event`` and parsed ``data``."""
-    events: list[dict[str, Any]] = []
-    current: dict[str, Any] = {}
-    for line in text.splitlines():
-        if not line:
-            if current:
-                events.append(current)
-                current = {}
-            continue
-        if line.startswith(":"):
-            continue
-        name, _, value = line.partition(":")
-        value = value.removeprefix(" ")
-        if name == "data":
-            current["data"] = json.loads(value)
-        elif name == "id":
-            current["id"] = int(value)
-        else:
-            current[name] = value
-    if current:
-        events.append(current)
-    return events
 
 
 def wait_job(client: TestClient, job_id: str, statuses: set[str], *, timeout: float = 120) -> dict[str, Any]:
@@ -73,17 +47,6 @@ def wait_job(client: TestClient, job_id: str, statuses: set[str], *, timeout: fl
             return job
         if time.monotonic() > deadline:
             raise AssertionError(f"job {job_id} still {job['status']} after {timeout} s: {job}")
-        time.sleep(0.05)
-
-
-def wait_until(predicate: Any, *, timeout: float = 60, what: str = "condition") -> Any:
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
         time.sleep(0.05)
 
 

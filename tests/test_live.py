@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from helpers import FINAL, wait_until
 
 from app.core.config import Settings
 from app.main import create_app
@@ -28,19 +29,7 @@ from strep_core.events import parse_event
 from strep_core.io.poses import read_tum
 
 SAMPLE = "sample:sim2d-small"
-FINAL = {"succeeded", "failed", "cancelled", "interrupted"}
 FRAMES = 64
-
-
-def wait_until(predicate: Any, *, timeout: float = 120, what: str = "condition", step: float = 0.05) -> Any:
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(step)
 
 
 def events_of(client: TestClient, job_id: str) -> list[Any]:
@@ -60,6 +49,7 @@ def wait_comparison(client: TestClient, cid: str) -> dict[str, Any]:
     return wait_until(
         lambda: (c := client.get(f"/api/comparisons/{cid}").json())["status"] not in ("queued", "running") and c,
         what=f"comparison {cid}",
+        timeout=120,
     )
 
 
@@ -112,7 +102,7 @@ def test_viewer_disabled(tmp_path: Path) -> None:
 
 def test_job_writes_its_recording(client: TestClient, tmp_path: Path) -> None:
     job = client.post("/api/jobs", json={"sequence_id": SAMPLE, "method": "icp"}).json()
-    done = wait_until(lambda: (j := client.get(f"/api/jobs/{job['id']}").json())["status"] in FINAL and j)
+    done = wait_until(lambda: (j := client.get(f"/api/jobs/{job['id']}").json())["status"] in FINAL and j, timeout=120)
     assert done["status"] == "succeeded", done
     assert "recording.rrd" in done["files"]
     r = client.get(f"/api/jobs/{job['id']}/files/recording.rrd")
@@ -248,7 +238,9 @@ def test_viewer_update_rate_with_two_live_jobs(client: TestClient) -> None:
 
     wait_until(lambda: min(iterations()) >= 25, what="both jobs live", timeout=60)
     t0, pushes0, its0 = time.monotonic(), dict(viewer.stats.pushes_by_job), iterations()
-    wait_until(lambda: max(iterations()) >= steps - 25 or time.monotonic() - t0 > 3, what="progress", step=0.01)
+    wait_until(
+        lambda: max(iterations()) >= steps - 25 or time.monotonic() - t0 > 3, what="progress", step=0.01, timeout=120
+    )
     t1, pushes1, its1 = time.monotonic(), dict(viewer.stats.pushes_by_job), iterations()
     dt = t1 - t0
     rates = [(pushes1[j] - pushes0.get(j, 0)) / dt for j in ids]

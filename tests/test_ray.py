@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -19,6 +18,7 @@ from typing import Any
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from helpers import FINAL, parse_sse, wait_until
 
 from app.core.config import RAY_MISSING, Settings
 from app.main import create_app
@@ -28,45 +28,10 @@ ray = pytest.importorskip("ray")
 
 pytestmark = pytest.mark.timeout(120)
 
-FINAL = {"succeeded", "failed", "cancelled", "interrupted"}
 LONG = 100_000  # iterations no test waits for: such jobs are always cancelled or killed
 
 
-# ---- helpers (as in test_api.py) ----------------------------------------------------------------
-
-
-def parse_sse(text: str) -> list[dict[str, Any]]:
-    """Events of a ``text/event-stream`` body: dicts with ``id``, ``event`` and parsed ``data``."""
-    events: list[dict[str, Any]] = []
-    current: dict[str, Any] = {}
-    for line in [*text.splitlines(), ""]:
-        if not line:
-            if current:
-                events.append(current)
-                current = {}
-            continue
-        if line.startswith(":"):
-            continue
-        name, _, value = line.partition(":")
-        value = value.removeprefix(" ")
-        if name == "data":
-            current["data"] = json.loads(value)
-        elif name == "id":
-            current["id"] = int(value)
-        else:
-            current[name] = value
-    return events
-
-
-def wait_until(predicate: Any, *, timeout: float = 60, what: str = "condition") -> Any:
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.05)
+# ---- helpers ----------------------------------------------------------------
 
 
 def wait_job(client: TestClient, job_id: str, *, timeout: float = 60) -> dict[str, Any]:
