@@ -423,8 +423,7 @@ def _best_yaw_start(
     best, best_key = init, (-1.0, 0.0)
     for yaw in (0.0, *offsets):
         turn = np.eye(4)
-        c, s = np.cos(yaw), np.sin(yaw)
-        turn[:2, :2] = [[c, -s], [s, c]]
+        turn[:2, :2] = g.so2(np.float64(yaw))
         stage = _icp_stage(
             source,
             target,

@@ -130,7 +130,8 @@ def base_guess(seq: Sequence) -> tuple[str, np.ndarray]:
 
 # The learned methods' default warm start. The pose graph refines incremental ICP with loop
 # closures; the networks then refine it. Measured (strep, 60 iterations, three 96-frame sim2d
-# trajectories): from icp 1.25 / 0.268 / 0.826 px, from multiway 0.151 / 0.478 / 0.436 px.
+# trajectories): from multiway 0.151 / 0.478 / 0.436 px (mean 0.355); from icp in the previous
+# quick benchmark 1.25 / 0.268 / 0.826 px (mean 0.782).
 LEARNED_WARM_START = "multiway"
 
 
