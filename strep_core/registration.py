@@ -344,8 +344,10 @@ def register_clouds(
         raise RegistrationError("register_clouds needs at least one scale")
     current = project_planar(init) if planar else np.asarray(init, dtype=np.float64)
     fitness, rmse = 0.0, 0.0
+    stages = tuple(scales)
     if yaw_search:
-        current = _best_yaw_start(
+        # the search runs the coarsest stage from every start: go on from its best result
+        best = _best_yaw_start(
             source,
             target,
             current,
@@ -357,7 +359,10 @@ def register_clouds(
             min_fitness=min_fitness,
             kernel=kernel,
         )
-    for scale in scales:
+        if best is None:  # the coarsest stage failed from every start, ``init`` included
+            return PairResult(transformation=current, fitness=0.0, inlier_rmse=0.0)
+        (current, fitness, rmse), stages = best, stages[1:]
+    for scale in stages:
         stage = _icp_stage(
             source,
             target,
@@ -415,12 +420,15 @@ def _best_yaw_start(
     planar: bool,
     min_fitness: float,
     kernel: float | None,
-) -> np.ndarray:
+) -> tuple[np.ndarray, float, float] | None:
     """The best of ``init`` and ``init`` turned by each yaw offset, each refined by one coarse
-    ICP stage, scored by fitness (then RMSE) within ``fine`` (see `register_clouds`)."""
+    ICP stage, scored by fitness (then RMSE) within ``fine`` (see `register_clouds`).
+
+    Returns that candidate's coarse stage ``(transform, fitness, inlier RMSE)``, or ``None``
+    when the stage fails from every start."""
     from strep_core._open3d import o3d
 
-    best, best_key = init, (-1.0, 0.0)
+    best, best_key = None, (-1.0, 0.0)
     for yaw in (0.0, *offsets):
         turn = np.eye(4)
         turn[:2, :2] = g.so2(np.float64(yaw))
@@ -436,11 +444,10 @@ def _best_yaw_start(
         )
         if stage is None:
             continue
-        candidate = stage[0]
-        ev = o3d.pipelines.registration.evaluate_registration(source, target, fine, candidate)
+        ev = o3d.pipelines.registration.evaluate_registration(source, target, fine, stage[0])
         key = (round(float(ev.fitness), 3), -float(ev.inlier_rmse))
         if key > best_key:
-            best, best_key = candidate, key
+            best, best_key = stage, key
     return best
 
 
