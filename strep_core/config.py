@@ -11,7 +11,7 @@ import json
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from strep_core.errors import ConfigError
 
@@ -56,15 +56,30 @@ class ClassicalConfig(_Section):
         default=0.0,
         ge=0,
         le=180,
-        description="2D ICP: also start the coarsest stage from the guess turned by up to +-this many "
-        "degrees (every icp_yaw_step) and keep the best match; 0: the guess alone",
+        description="ICP: also start the coarsest stage from the guess turned about the sensor's vertical "
+        "axis by up to +-this many degrees (every icp_yaw_step) and keep the best match; in 3D only with "
+        "icp_yaw_axis; 0: the guess alone",
     )
     icp_motion_prior: Literal["init", "velocity"] = Field(
         default="init",
         description="incremental ICP's guess for each pair: the initial guess's relative motion, or the "
         "previous pair's estimated motion (constant velocity)",
     )
-    icp_yaw_step: float = Field(default=10.0, gt=0, le=180, description="2D ICP yaw search step (degrees)")
+    icp_yaw_step: float = Field(default=10.0, gt=0, le=180, description="ICP yaw search step (degrees)")
+    icp_yaw_axis: tuple[float, float, float] | None = Field(
+        default=None,
+        description="3D ICP: the sensor's vertical axis in its own frame, about which the yaw search turns "
+        "(e.g. [0, -1, 0] for a level camera with OpenCV axes, [0, 0, 1] for a level LiDAR); None: no yaw "
+        "search in 3D (2D always turns about z)",
+    )
+    icp_degeneracy: float = Field(
+        default=0.0,
+        ge=0,
+        le=0.5,
+        description="keep the guess's translation along directions that the matched target normals constrain "
+        "weakly: smallest eigenvalues of their mean outer product below this (a view of one wall, a corridor); "
+        "0: off",
+    )
     local_map_frames: int = Field(
         default=5, ge=1, le=50, description="icp: register each frame to the union of this many previous ones"
     )
@@ -130,6 +145,13 @@ class ClassicalConfig(_Section):
     threads: int = Field(
         default=1, ge=1, le=256, description="CPU threads for Open3D and KISS-ICP (1: bit-for-bit repeatable)"
     )
+
+    @field_validator("icp_yaw_axis")
+    @classmethod
+    def _axis_nonzero(cls, v: tuple[float, float, float] | None) -> tuple[float, float, float] | None:
+        if v is not None and sum(c * c for c in v) < 1e-12:
+            raise ValueError("icp_yaw_axis must be a nonzero vector")
+        return v
 
 
 # ---- learned methods (strep, strep-nolink, deepmapping) ------------------------------------

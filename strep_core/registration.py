@@ -63,6 +63,9 @@ class RegistrationParams:
         threads: CPU threads Open3D may use (1 makes runs bit-for-bit repeatable).
         yaw_search: extra yaw offsets (radians) tried as starting guesses of the coarsest ICP
             stage (see `register_clouds`); empty: the initial guess alone.
+        yaw_axis: unit axis of those turns in the source sensor's frame (``z`` in 2D).
+        degeneracy: keep the guess's translation along weakly constrained directions (see
+            `register_clouds`); 0: off.
         velocity_prior: incremental ICP starts each pair from the previous pair's estimated
             motion (constant velocity) instead of the initial guess's relative motion.
     """
@@ -80,6 +83,8 @@ class RegistrationParams:
     local_map: int = 1
     threads: int = 1
     yaw_search: tuple[float, ...] = ()
+    yaw_axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    degeneracy: float = 0.0
     velocity_prior: bool = False
 
     @property
@@ -94,6 +99,10 @@ def resolve_params(seq: Sequence, cfg: ClassicalConfig) -> RegistrationParams:
     normal_radius = cfg.normal_radius if cfg.normal_radius is not None else 1.0
     if cfg.normal_radius is None and seq.dim == 3:  # 2D normals use neighbour counts, not a radius
         normal_radius = cfg.normal_radius_factor * max(voxel, point_spacing(seq))
+    axis = None
+    if cfg.icp_yaw_axis is not None:
+        a = np.asarray(cfg.icp_yaw_axis, dtype=np.float64)
+        axis = tuple(float(c) for c in a / np.linalg.norm(a))
     return RegistrationParams(
         dim=seq.dim,
         max_correspondence=(
@@ -109,7 +118,9 @@ def resolve_params(seq: Sequence, cfg: ClassicalConfig) -> RegistrationParams:
         normal_max_nn=cfg.normal_max_nn,
         local_map=cfg.local_map_frames,
         threads=cfg.threads,
-        yaw_search=yaw_offsets(cfg.icp_yaw_search, cfg.icp_yaw_step) if seq.dim == 2 else (),
+        yaw_search=yaw_offsets(cfg.icp_yaw_search, cfg.icp_yaw_step) if seq.dim == 2 or axis is not None else (),
+        yaw_axis=(0.0, 0.0, 1.0) if axis is None or seq.dim == 2 else axis,
+        degeneracy=cfg.icp_degeneracy,
         velocity_prior=cfg.icp_motion_prior == "velocity",
     )
 
@@ -132,11 +143,16 @@ class PairResult:
             then exactly SE(2) embedded: yaw and x, y only).
         fitness: fraction of source points with a correspondence within the final distance.
         inlier_rmse: RMSE of those correspondences (sequence unit).
+        kept_guess: every ICP stage failed (see ``min_fitness``): the transform is the guess.
+        weak_directions: how many translation directions were too weakly constrained by the
+            matched normals and kept the guess's value (``degeneracy``).
     """
 
     transformation: np.ndarray
     fitness: float
     inlier_rmse: float
+    kept_guess: bool = False
+    weak_directions: int = 0
 
 
 @dataclass
@@ -315,6 +331,8 @@ def register_clouds(
     min_fitness: float = 0.0,
     kernel: float | None = None,
     yaw_search: tuple[float, ...] = (),
+    yaw_axis: tuple[float, float, float] = (0.0, 0.0, 1.0),
+    degeneracy: float = 0.0,
 ) -> PairResult:
     """Point-to-plane ICP of prepared clouds (``target`` needs normals), coarse to fine.
 
@@ -335,6 +353,12 @@ def register_clouds(
             that matches the most source points within the *finest* distance (ties: the lower
             RMSE) goes on to the finer stages. Point-to-plane ICP converges only from within
             about 10 degrees; laser keyframes turn by up to 20 to 30 degrees.
+        yaw_axis: unit axis of the yaw turns, in the source's frame (its sensor's vertical).
+        degeneracy: after the last stage, the translation along each direction whose
+            eigenvalue of the mean outer product of the matched target normals (finest
+            distance) is below this is reset to the guess's (`keep_guess_where_weak`):
+            ICP slides freely along a wall or a corridor, and the guess (the previous motion,
+            or no motion) is the better answer there. 0: off.
     """
     from strep_core._open3d import o3d
 
@@ -343,7 +367,7 @@ def register_clouds(
     if not scales:
         raise RegistrationError("register_clouds needs at least one scale")
     current = project_planar(init) if planar else np.asarray(init, dtype=np.float64)
-    fitness, rmse = 0.0, 0.0
+    guess, fitness, rmse = current, 0.0, 0.0
     stages = tuple(scales)
     if yaw_search:
         # the search runs the coarsest stage from every start: go on from its best result
@@ -358,10 +382,12 @@ def register_clouds(
             planar=planar,
             min_fitness=min_fitness,
             kernel=kernel,
+            axis=yaw_axis,
         )
         if best is None:  # the coarsest stage failed from every start, ``init`` included
-            return PairResult(transformation=current, fitness=0.0, inlier_rmse=0.0)
+            return PairResult(transformation=current, fitness=0.0, inlier_rmse=0.0, kept_guess=True)
         (current, fitness, rmse), stages = best, stages[1:]
+    moved = bool(yaw_search)
     for scale in stages:
         stage = _icp_stage(
             source,
@@ -376,7 +402,82 @@ def register_clouds(
         if stage is None:
             break
         current, fitness, rmse = stage
-    return PairResult(transformation=current, fitness=fitness, inlier_rmse=rmse)
+        moved = True
+    if not moved:
+        return PairResult(transformation=current, fitness=0.0, inlier_rmse=0.0, kept_guess=True)
+    weak = 0
+    if degeneracy > 0:
+        current, weak = keep_guess_where_weak(
+            source, target, current, guess, max_correspondence * min(scales), degeneracy, planar=planar
+        )
+    return PairResult(transformation=current, fitness=fitness, inlier_rmse=rmse, weak_directions=weak)
+
+
+def keep_guess_where_weak(
+    source: o3d.geometry.PointCloud,
+    target: o3d.geometry.PointCloud,
+    transform: np.ndarray,
+    guess: np.ndarray,
+    distance: float,
+    threshold: float,
+    *,
+    planar: bool = False,
+) -> tuple[np.ndarray, int]:
+    """Reset the translation of ``transform`` to ``guess``'s along weakly constrained directions.
+
+    Point-to-plane ICP constrains translation only along the normals it matches: with
+    ``H = mean(n n^T)`` over the target normals of the correspondences within ``distance``
+    (eigenvalues summing to 1; 1/3 each for normals spread evenly, 0 along a direction no
+    normal has a component in), each eigenvector with eigenvalue below ``threshold`` gets the
+    guess's translation component back; rotation is kept (a solution remapping after Zhang,
+    Kaess and Singh, ICRA 2016, applied once to the result). In 2D only the in-plane
+    directions are examined.
+
+    Returns:
+        The ``(4, 4)`` transform and how many directions were reset.
+    """
+    from strep_core._open3d import o3d
+
+    ev = o3d.pipelines.registration.evaluate_registration(source, target, distance, transform)
+    corr = np.asarray(ev.correspondence_set)
+    if len(corr) < 3 or not target.has_normals():
+        return transform, 0
+    dims = 2 if planar else 3
+    normals = np.asarray(target.normals)[corr[:, 1], :dims]
+    values, vectors = np.linalg.eigh(normals.T @ normals / len(normals))
+    weak = vectors[:, values < threshold]
+    if weak.shape[1] == 0:
+        return transform, 0
+    out = np.array(transform, dtype=np.float64)
+    out[:dims, 3] -= weak @ (weak.T @ (out[:dims, 3] - np.asarray(guess)[:dims, 3]))
+    return out, int(weak.shape[1])
+
+
+def register_with(
+    source: o3d.geometry.PointCloud,
+    target: o3d.geometry.PointCloud,
+    init: np.ndarray,
+    params: RegistrationParams,
+    *,
+    scales: tuple[float, ...] | None = None,
+    yaw_search: bool = True,
+) -> PairResult:
+    """`register_clouds` with every setting from ``params`` (``scales`` overrides its stages;
+    ``yaw_search=False`` starts from ``init`` alone, e.g. for loop closures)."""
+    return register_clouds(
+        source,
+        target,
+        init,
+        max_correspondence=params.max_correspondence,
+        scales=params.scales if scales is None else scales,
+        iterations=params.iterations,
+        planar=params.planar,
+        min_fitness=params.min_fitness,
+        kernel=params.kernel,
+        yaw_search=params.yaw_search if yaw_search else (),
+        yaw_axis=params.yaw_axis,
+        degeneracy=params.degeneracy,
+    )
 
 
 def _icp_stage(
@@ -420,9 +521,10 @@ def _best_yaw_start(
     planar: bool,
     min_fitness: float,
     kernel: float | None,
+    axis: tuple[float, float, float] = (0.0, 0.0, 1.0),
 ) -> tuple[np.ndarray, float, float] | None:
-    """The best of ``init`` and ``init`` turned by each yaw offset, each refined by one coarse
-    ICP stage, scored by fitness (then RMSE) within ``fine`` (see `register_clouds`).
+    """The best of ``init`` and ``init`` turned about ``axis`` by each yaw offset, each refined
+    by one coarse ICP stage, scored by fitness (then RMSE) within ``fine`` (see `register_clouds`).
 
     Returns that candidate's coarse stage ``(transform, fitness, inlier RMSE)``, or ``None``
     when the stage fails from every start."""
@@ -431,7 +533,7 @@ def _best_yaw_start(
     best, best_key = None, (-1.0, 0.0)
     for yaw in (0.0, *offsets):
         turn = np.eye(4)
-        turn[:2, :2] = g.so2(np.float64(yaw))
+        turn[:3, :3] = g.so3_exp(np.asarray(axis, dtype=np.float64) * yaw)
         stage = _icp_stage(
             source,
             target,
@@ -476,18 +578,7 @@ def register_pair(
     with open3d_quiet(params.threads):
         src = prepare_frame(source, params, origin=source_origin)
         tgt = prepare_frame(target, params, origin=target_origin)
-        res = register_clouds(
-            src,
-            tgt,
-            init4,
-            max_correspondence=params.max_correspondence,
-            scales=params.scales,
-            iterations=params.iterations,
-            planar=dim == 2,
-            min_fitness=params.min_fitness,
-            kernel=params.kernel,
-            yaw_search=params.yaw_search,
-        )
+        res = register_with(src, tgt, init4, params)
     return from_se3(res.transformation, dim), res
 
 
@@ -566,18 +657,7 @@ def incremental_icp(
             target = clouds[k - 1]
             if params.local_map > 1:
                 target = _local_map(clouds, poses3, k, params)
-            res = register_clouds(
-                clouds[k],
-                target,
-                guess,
-                max_correspondence=params.max_correspondence,
-                scales=params.scales,
-                iterations=params.iterations,
-                planar=params.planar,
-                min_fitness=params.min_fitness,
-                kernel=params.kernel,
-                yaw_search=params.yaw_search,
-            )
+            res = register_with(clouds[k], target, guess, params)
             pairs.append(res)
             poses3[k] = poses3[k - 1] @ res.transformation
             if params.planar:
@@ -586,6 +666,15 @@ def incremental_icp(
                 on_frame(k, from_se3(poses3, seq.dim))
     poses = from_se3(poses3, seq.dim)
     return IncrementalResult(poses=poses, pairs=pairs, clouds=clouds, seconds=time.perf_counter() - started)
+
+
+def pair_report(pairs: list[PairResult]) -> dict[str, list[int]]:
+    """Which frames' ICP kept its guess (every stage failed) and which had weakly constrained
+    translation directions reset to the guess, for a run's artifacts (frame k: pair k-1 -> k)."""
+    return {
+        "kept_guess_frames": [k + 1 for k, p in enumerate(pairs) if p.kept_guess],
+        "weak_direction_frames": [k + 1 for k, p in enumerate(pairs) if p.weak_directions],
+    }
 
 
 def _local_map(clouds: list[Any], poses3: np.ndarray, k: int, params: RegistrationParams) -> o3d.geometry.PointCloud:

@@ -104,7 +104,7 @@ def icp_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: RunConte
         iterations=len(seq),
         history=progress.history,
         timings={"registration": out.seconds},
-        artifacts={"fitness": [p.fitness for p in out.pairs]},
+        artifacts={"fitness": [p.fitness for p in out.pairs], **reg.pair_report(out.pairs)},
     )
 
 
@@ -186,16 +186,8 @@ def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
         kept = 0
         for j in range(k_frames):
             for i in by_frame.get(j, []):
-                res = reg.register_clouds(
-                    clouds[j],
-                    clouds[i],
-                    g.relative(poses3[i], poses3[j]),
-                    max_correspondence=params.max_correspondence,
-                    scales=loop_scales,
-                    iterations=params.iterations,
-                    planar=params.planar,
-                    min_fitness=params.min_fitness,
-                    kernel=params.kernel,
+                res = reg.register_with(
+                    clouds[j], clouds[i], g.relative(poses3[i], poses3[j]), params, scales=loop_scales, yaw_search=False
                 )
                 if res.fitness < cfg.loop_min_fitness:
                     continue
@@ -233,6 +225,7 @@ def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
             "loop_candidates": len(candidates),
             "loop_edges": kept,
             "graph_edges": len(graph.edges),
+            **reg.pair_report(odo.pairs),
         },
     )
 
