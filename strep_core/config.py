@@ -249,6 +249,9 @@ class OptimConfig(_Section):
     )
     schedule: Literal["constant", "cosine"] = Field(default="cosine", description="learning-rate schedule")
     final_lr_fraction: float = Field(default=0.05, ge=0, le=1, description="cosine: final lr / initial lr")
+    warmup_iterations: int = Field(
+        default=0, ge=0, le=100_000, description="learning rates rise linearly from 0 over this many first steps"
+    )
     batch_frames: int | None = Field(default=None, ge=2, description="frames per batch; None: all")
     points_per_frame: int | None = Field(
         default=32, ge=8, description="query points per frame per step for Chamfer; None: all"

@@ -12,6 +12,7 @@ import pytest
 
 from app.viewer import ViewerServer
 from app.viewer.scene import History, Snapshot, poses_to_matrices, rotations_to_wxyz
+from app.viewer.server import CHART_INTERVAL, loss_exponent
 from strep_core import geometry as g
 from strep_core.config import RunConfig
 from strep_core.events import IterationEvent, ListSink, MultiSink, StartEvent, pose_list
@@ -333,3 +334,32 @@ def test_layout_without_ground_truth_follows_the_estimate(viewer, seq, icp_event
     pa = np.asarray(viewer.scene_node(f"/jobs/{jobs['blind-a']['key']}").position)
     pb = np.asarray(viewer.scene_node(f"/jobs/{jobs['blind-b']['key']}").position)
     assert width < pb[0] - pa[0] < 1.5 * width
+
+
+def test_loss_exponent_keeps_small_losses_readable() -> None:
+    assert loss_exponent([np.array([3.2e-4, 1e-4])]) == -4  # drawn as 3.2 and 1 (x 1e-4)
+    assert loss_exponent([np.array([0.5, 0.02]), np.array([np.nan, 7.0])]) == 0
+    assert loss_exponent([np.array([2.5e4])]) == 4
+    assert loss_exponent([np.array([0.0])]) == 0 and loss_exponent([]) == 0
+
+
+def test_chart_draws_chamfer_sized_losses_in_a_power_of_ten(viewer, seq) -> None:
+    gt = g.pose_to_vector(seq.poses)
+    sink = viewer.sink("tiny-loss", "tiny-loss", seq, select=True)
+    sink.emit(
+        StartEvent(
+            method="fake", sequence=seq.name, frames=len(seq), dims=2, unit="px", total_iterations=3,
+            initial_guess="identity",
+        )
+    )  # fmt: skip
+    for i in range(1, 4):
+        time.sleep(CHART_INTERVAL if i == 3 else 0.0)  # the chart is redrawn at most every CHART_INTERVAL
+        sink.emit(
+            IterationEvent(
+                iteration=i, total=3, elapsed=0.1 * i, losses={"total": 4e-4 / i, "chamfer": 3e-4 / i},
+                poses=pose_list(gt),
+            )
+        )  # fmt: skip
+    assert viewer.wait_idle(5)
+    info = viewer.jobs()["tiny-loss"]
+    assert info["chart"][:2] == ["loss/total", "loss/chamfer"] and info["chart_exponent"] == -4

@@ -95,6 +95,18 @@ class ViewerStats:
     builds: int = 0
 
 
+def loss_exponent(curves: list[np.ndarray]) -> int:
+    """Power of ten in which to draw loss curves: ``e`` with the largest finite ``|value|`` in
+    ``[10**e, 10**(e+1))`` when it lies outside ``[0.01, 1000)`` (uPlot's axis labels show
+    three decimals: a Chamfer loss of 1e-4 reads as 0), else 0."""
+    v = np.abs(np.concatenate([np.ravel(c) for c in curves])) if curves else np.zeros(0)
+    v = v[np.isfinite(v)]
+    if v.size == 0 or v.max() <= 0:
+        return 0
+    e = int(np.floor(np.log10(v.max())))
+    return e if e < -2 or e > 2 else 0
+
+
 @dataclass
 class _Job:
     job_id: str
@@ -120,6 +132,7 @@ class _Job:
     frame_nodes: list[Any] = field(default_factory=list)
     chart: Any = None
     chart_series: tuple[str, ...] = ()
+    chart_exponent: int = 0  # loss curves are drawn in units of 10**chart_exponent
     chart_pushed: float = -math.inf
     box: tuple[np.ndarray, np.ndarray] | None = None
     offset: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -388,6 +401,7 @@ class ViewerServer:
                     "pushes": self.stats.pushes_by_job.get(j.job_id, 0),
                     "key": j.key,
                     "chart": list(j.chart_series),
+                    "chart_exponent": j.chart_exponent,
                     "shown_iteration": None if j.shown is None else j.shown.iteration,
                 }
             return out
@@ -919,7 +933,12 @@ class ViewerServer:
             x, y = curves[n]
             idx = np.clip(np.searchsorted(x, xs, side="right") - 1, 0, len(x) - 1)
             data.append(y[idx])
-        if job.chart is not None and job.chart_series == names:
+        same = job.chart is not None and job.chart_series == names
+        if not same:  # the loss unit is chosen once per chart, so its axis label stays put
+            job.chart_exponent = loss_exponent([d for n, d in zip(names, data[1:], strict=True) if n != "ate"])
+        unit = 10.0**-job.chart_exponent
+        data = [data[0]] + [d if n == "ate" else d * unit for n, d in zip(names, data[1:], strict=True)]
+        if same:
             job.chart.data = tuple(data)
             return
         if job.chart is not None:
@@ -936,7 +955,8 @@ class ViewerServer:
             )
         axes = [viser.uplot.Axis()]
         if any(n != "ate" for n in names):
-            axes.append(viser.uplot.Axis(scale="loss", label="loss"))
+            e = job.chart_exponent
+            axes.append(viser.uplot.Axis(scale="loss", label=f"loss (x 1e{e})" if e else "loss"))
         if "ate" in names:
             axes.append(viser.uplot.Axis(scale="ate", side=1, label=f"ATE ({job.scene.unit})"))
         with job.nodes["gui/folder"]:
