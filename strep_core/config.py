@@ -72,6 +72,17 @@ class ClassicalConfig(_Section):
         "(e.g. [0, -1, 0] for a level camera with OpenCV axes, [0, 0, 1] for a level LiDAR); None: no yaw "
         "search in 3D (2D always turns about z)",
     )
+    icp_correlative: float = Field(
+        default=0.0,
+        ge=0,
+        le=100,
+        description="2D ICP: also start from a correlative scan match (an exhaustive yaw and translation "
+        "search on a likelihood field) within +-this many correspondence distances and +-icp_correlative_yaw "
+        "degrees of the guess, and keep it when it matches more points; 0: off",
+    )
+    icp_correlative_yaw: float = Field(
+        default=60.0, gt=0, le=180, description="correlative scan match: yaw window (degrees, 1 degree steps)"
+    )
     icp_degeneracy: float = Field(
         default=0.0,
         ge=0,

@@ -75,8 +75,9 @@ ATE in px; numbers from 100-iteration runs unless noted):
 
 Limits (measured): the corrections are found by gradient descent from the warm start, so a
 warm start with gross errors stays wrong, and drift that no pair of neighbouring frames sees
-is not corrected. On CARMEN windows (yaw search and velocity prior in the warm start's ICP)
-every learned variant ends within 0.03 m of its pose-graph start (0.14 to 1.97 m ATE),
+is not corrected. On CARMEN windows (yaw search, velocity prior and correlative start in the
+warm start's ICP) every learned variant ends within 0.01 m of its pose-graph start (0.03 to
+0.40 m ATE; before the correlative start, within 0.03 m of 0.14 to 1.97 m),
 although started from the corrected poses themselves strep stays within 0.03 m of them
 on intel[0:100]: the loss has its minimum near the truth, but the 0.4 m of drift of the
 warm start lies in a basin the local Chamfer terms do not leave; larger loop radii or

@@ -23,11 +23,23 @@ Data-derived lengths (`resolve_params`), with ``s = Sequence.scale()`` (median p
 * 3D normal radius ``normal_radius_factor * max(v, h)``, ``h`` the median spacing of
   neighbouring points (`point_spacing`), so that sparse clouds still find neighbours;
   2D normals from the ``normal_neighbours`` nearest neighbours in the plane.
+
+Optional guards (off by default; the benchmark turns them on per suite, `strep_core.bench`):
+
+* yaw search (``icp_yaw_search``, ``icp_yaw_step``): the coarsest stage also starts from the
+  guess turned about the sensor's vertical axis (``z`` in 2D, ``icp_yaw_axis`` in 3D), and the
+  best-matching start goes on;
+* weak directions (``icp_degeneracy``): after the last stage, translation along directions the
+  matched normals barely constrain returns to the guess's (`keep_guess_where_weak`).
+
+Each `PairResult` says whether ICP failed and kept its guess and how many directions were
+reset; `pair_report` lists those frames in a run's artifacts.
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -37,6 +49,7 @@ import numpy as np
 
 from strep_core import geometry as g
 from strep_core.config import ClassicalConfig
+from strep_core.correlative import CorrelativeParams, correlative_match
 from strep_core.errors import RegistrationError
 from strep_core.sequence import Sequence
 
@@ -66,6 +79,7 @@ class RegistrationParams:
         yaw_axis: unit axis of those turns in the source sensor's frame (``z`` in 2D).
         degeneracy: keep the guess's translation along weakly constrained directions (see
             `register_clouds`); 0: off.
+        correlative: 2D: also start from a correlative scan match (see `register_clouds`).
         velocity_prior: incremental ICP starts each pair from the previous pair's estimated
             motion (constant velocity) instead of the initial guess's relative motion.
     """
@@ -85,6 +99,7 @@ class RegistrationParams:
     yaw_search: tuple[float, ...] = ()
     yaw_axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
     degeneracy: float = 0.0
+    correlative: CorrelativeParams | None = None
     velocity_prior: bool = False
 
     @property
@@ -103,11 +118,19 @@ def resolve_params(seq: Sequence, cfg: ClassicalConfig) -> RegistrationParams:
     if cfg.icp_yaw_axis is not None:
         a = np.asarray(cfg.icp_yaw_axis, dtype=np.float64)
         axis = tuple(float(c) for c in a / np.linalg.norm(a))
+    d = cfg.max_correspondence if cfg.max_correspondence is not None else cfg.correspondence_fraction * s
+    correlative = None
+    if cfg.icp_correlative > 0 and seq.dim == 2:
+        correlative = CorrelativeParams(
+            window=cfg.icp_correlative * d,
+            yaw_window=float(np.radians(cfg.icp_correlative_yaw)),
+            yaw_step=float(np.radians(1.0)),
+            resolution=d / 7.0,
+            sigma=d / 3.5,
+        )
     return RegistrationParams(
         dim=seq.dim,
-        max_correspondence=(
-            cfg.max_correspondence if cfg.max_correspondence is not None else cfg.correspondence_fraction * s
-        ),
+        max_correspondence=d,
         scales=tuple(cfg.icp_scales),
         iterations=cfg.icp_iterations,
         min_fitness=cfg.icp_min_fitness,
@@ -121,6 +144,7 @@ def resolve_params(seq: Sequence, cfg: ClassicalConfig) -> RegistrationParams:
         yaw_search=yaw_offsets(cfg.icp_yaw_search, cfg.icp_yaw_step) if seq.dim == 2 or axis is not None else (),
         yaw_axis=(0.0, 0.0, 1.0) if axis is None or seq.dim == 2 else axis,
         degeneracy=cfg.icp_degeneracy,
+        correlative=correlative,
         velocity_prior=cfg.icp_motion_prior == "velocity",
     )
 
@@ -333,6 +357,7 @@ def register_clouds(
     yaw_search: tuple[float, ...] = (),
     yaw_axis: tuple[float, float, float] = (0.0, 0.0, 1.0),
     degeneracy: float = 0.0,
+    correlative: CorrelativeParams | None = None,
 ) -> PairResult:
     """Point-to-plane ICP of prepared clouds (``target`` needs normals), coarse to fine.
 
@@ -359,7 +384,55 @@ def register_clouds(
             distance) is below this is reset to the guess's (`keep_guess_where_weak`):
             ICP slides freely along a wall or a corridor, and the guess (the previous motion,
             or no motion) is the better answer there. 0: off.
+        correlative: 2D only: the stages also run from the best pose of a correlative scan
+            match around ``init`` (`strep_core.correlative`; no yaw search from there), and
+            that result wins when it matches more source points within the finest distance
+            (by more than 0.01 of them). It finds turns and offsets beyond every ICP basin the
+            yaw search can reach.
     """
+    icp = functools.partial(
+        _register,
+        source,
+        target,
+        max_correspondence=max_correspondence,
+        scales=scales,
+        iterations=iterations,
+        planar=planar,
+        min_fitness=min_fitness,
+        kernel=kernel,
+        yaw_axis=yaw_axis,
+        degeneracy=degeneracy,
+    )
+    first = icp(init, yaw_search=yaw_search)
+    if correlative is None or not planar:
+        return first
+    from strep_core._open3d import o3d
+
+    guess = from_se3(project_planar(init)[None], 2)[0]
+    start, _ = correlative_match(np.asarray(source.points), np.asarray(target.points), guess, correlative)
+    second = icp(g.to_se3(start), yaw_search=())
+    fine = max_correspondence * min(scales)
+    evaluate = o3d.pipelines.registration.evaluate_registration
+    fit = [evaluate(source, target, fine, r.transformation).fitness for r in (first, second)]
+    return second if fit[1] > fit[0] + 0.01 else first
+
+
+def _register(
+    source: o3d.geometry.PointCloud,
+    target: o3d.geometry.PointCloud,
+    init: np.ndarray,
+    *,
+    max_correspondence: float,
+    scales: tuple[float, ...],
+    iterations: int,
+    planar: bool,
+    min_fitness: float,
+    kernel: float | None,
+    yaw_search: tuple[float, ...],
+    yaw_axis: tuple[float, float, float],
+    degeneracy: float,
+) -> PairResult:
+    """`register_clouds` without the correlative start."""
     from strep_core._open3d import o3d
 
     reg = o3d.pipelines.registration
@@ -477,6 +550,7 @@ def register_with(
         yaw_search=params.yaw_search if yaw_search else (),
         yaw_axis=params.yaw_axis,
         degeneracy=params.degeneracy,
+        correlative=params.correlative if yaw_search else None,
     )
 
 
