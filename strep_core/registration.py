@@ -751,6 +751,15 @@ def pair_report(pairs: list[PairResult]) -> dict[str, list[int]]:
     }
 
 
+def pair_metrics(pairs: list[PairResult]) -> dict[str, int]:
+    """Counts for a run's metrics: ``icp_kept_guess`` (pairs where ICP failed and kept its guess)
+    and ``icp_weak_pairs`` (pairs with a translation direction reset to the guess)."""
+    return {
+        "icp_kept_guess": sum(p.kept_guess for p in pairs),
+        "icp_weak_pairs": sum(p.weak_directions > 0 for p in pairs),
+    }
+
+
 def _local_map(clouds: list[Any], poses3: np.ndarray, k: int, params: RegistrationParams) -> o3d.geometry.PointCloud:
     """Union of frames ``k-M .. k-1`` in frame k-1's coordinates (normals moved along)."""
     from strep_core._open3d import o3d

@@ -313,6 +313,8 @@ def test_icp_on_a_simulated_avd_walk_with_the_bench_settings() -> None:
     assert tuned.metrics["ate"] < 0.2, tuned.metrics["ate"]
     assert tuned.artifacts["weak_direction_frames"], "the walls of sim3d-0 leave some translation free"
     assert not plain.artifacts["weak_direction_frames"]  # the guard is off by default
+    assert tuned.metrics["icp_weak_pairs"] == len(tuned.artifacts["weak_direction_frames"]) > 0
+    assert plain.metrics["icp_weak_pairs"] == 0 and plain.metrics["icp_kept_guess"] == 0
 
 
 # ---- correlative scan matching (2D keyframes) -------------------------------------------------

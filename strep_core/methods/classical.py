@@ -105,6 +105,7 @@ def icp_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: RunConte
         history=progress.history,
         timings={"registration": out.seconds},
         artifacts={"fitness": [p.fitness for p in out.pairs], **reg.pair_report(out.pairs)},
+        metrics=reg.pair_metrics(out.pairs),
     )
 
 
@@ -227,6 +228,7 @@ def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
             "graph_edges": len(graph.edges),
             **reg.pair_report(odo.pairs),
         },
+        metrics=reg.pair_metrics(odo.pairs),
     )
 
 

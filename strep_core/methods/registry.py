@@ -59,6 +59,7 @@ class MethodOutput:
     history: list[dict[str, Any]] = field(default_factory=list)
     artifacts: dict[str, Any] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
+    metrics: dict[str, float | int] = field(default_factory=dict)  # method-specific, into Result.metrics
 
 
 MethodFn = Callable[[Sequence, np.ndarray, RunConfig, RunContext], MethodOutput]
@@ -224,6 +225,7 @@ def run(
         "wall_seconds": wall,
         "ate": None,
         "point_l2": None,
+        **out.metrics,
     }
     if seq.poses is not None:
         m.update(metrics.evaluate(seq.frames, out.poses, seq.poses))
