@@ -114,10 +114,11 @@ def resolve_params(seq: Sequence, cfg: ClassicalConfig) -> RegistrationParams:
     normal_radius = cfg.normal_radius if cfg.normal_radius is not None else 1.0
     if cfg.normal_radius is None and seq.dim == 3:  # 2D normals use neighbour counts, not a radius
         normal_radius = cfg.normal_radius_factor * max(voxel, point_spacing(seq))
-    axis = None
+    axis: tuple[float, float, float] | None = None
     if cfg.icp_yaw_axis is not None:
         a = np.asarray(cfg.icp_yaw_axis, dtype=np.float64)
-        axis = tuple(float(c) for c in a / np.linalg.norm(a))
+        x, y, z = (float(c) for c in a / np.linalg.norm(a))
+        axis = (x, y, z)
     d = cfg.max_correspondence if cfg.max_correspondence is not None else cfg.correspondence_fraction * s
     correlative = None
     if cfg.icp_correlative > 0 and seq.dim == 2:
