@@ -33,13 +33,12 @@ Optional guards (off by default; the benchmark turns them on per suite, `strep_c
   matched normals barely constrain returns to the guess's (`keep_guess_where_weak`).
 
 Each `PairResult` says whether ICP failed and kept its guess and how many directions were
-reset; `pair_report` lists those frames in a run's artifacts.
+reset; `pair_report` lists those frames and counts them for a run's artifacts and metrics.
 """
 
 from __future__ import annotations
 
 import contextlib
-import functools
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -391,28 +390,44 @@ def register_clouds(
             (by more than 0.01 of them). It finds turns and offsets beyond every ICP basin the
             yaw search can reach.
     """
-    icp = functools.partial(
-        _register,
-        source,
-        target,
+    params = RegistrationParams(
+        dim=2 if planar else 3,
         max_correspondence=max_correspondence,
-        scales=scales,
+        scales=tuple(scales),
         iterations=iterations,
-        planar=planar,
         min_fitness=min_fitness,
         kernel=kernel,
+        yaw_search=tuple(yaw_search),
         yaw_axis=yaw_axis,
         degeneracy=degeneracy,
+        correlative=correlative,
     )
-    first = icp(init, yaw_search=yaw_search)
-    if correlative is None or not planar:
+    return register_with(source, target, init, params)
+
+
+def register_with(
+    source: o3d.geometry.PointCloud,
+    target: o3d.geometry.PointCloud,
+    init: np.ndarray,
+    params: RegistrationParams,
+    *,
+    scales: tuple[float, ...] | None = None,
+    yaw_search: bool = True,
+) -> PairResult:
+    """Pairwise ICP with every setting from ``params`` (what each does: `register_clouds`).
+
+    ``scales`` overrides its stages; ``yaw_search=False`` starts from ``init`` alone, without the
+    yaw search or the correlative start (e.g. for loop closures)."""
+    stages = params.scales if scales is None else tuple(scales)
+    first = _register(source, target, init, params, stages, params.yaw_search if yaw_search else ())
+    if params.correlative is None or not params.planar or not yaw_search:
         return first
     from strep_core._open3d import o3d
 
     guess = from_se3(project_planar(init)[None], 2)[0]
-    start, _ = correlative_match(np.asarray(source.points), np.asarray(target.points), guess, correlative)
-    second = icp(g.to_se3(start), yaw_search=())
-    fine = max_correspondence * min(scales)
+    start, _ = correlative_match(np.asarray(source.points), np.asarray(target.points), guess, params.correlative)
+    second = _register(source, target, g.to_se3(start), params, stages, ())
+    fine = params.max_correspondence * min(stages)
     evaluate = o3d.pipelines.registration.evaluate_registration
     fit = [evaluate(source, target, fine, r.transformation).fitness for r in (first, second)]
     return second if fit[1] > fit[0] + 0.01 else first
@@ -422,24 +437,21 @@ def _register(
     source: o3d.geometry.PointCloud,
     target: o3d.geometry.PointCloud,
     init: np.ndarray,
-    *,
-    max_correspondence: float,
+    params: RegistrationParams,
     scales: tuple[float, ...],
-    iterations: int,
-    planar: bool,
-    min_fitness: float,
-    kernel: float | None,
     yaw_search: tuple[float, ...],
-    yaw_axis: tuple[float, float, float],
-    degeneracy: float,
 ) -> PairResult:
-    """`register_clouds` without the correlative start."""
+    """The ICP stages ``scales`` from ``init`` (after the yaw search, when ``yaw_search`` has
+    offsets) and the weak-direction guard: `register_with` without the correlative start."""
     from strep_core._open3d import o3d
 
     reg = o3d.pipelines.registration
-    criteria = reg.ICPConvergenceCriteria(relative_fitness=1e-7, relative_rmse=1e-7, max_iteration=int(iterations))
+    criteria = reg.ICPConvergenceCriteria(
+        relative_fitness=1e-7, relative_rmse=1e-7, max_iteration=int(params.iterations)
+    )
     if not scales:
         raise RegistrationError("register_clouds needs at least one scale")
+    planar, d = params.planar, params.max_correspondence
     current = project_planar(init) if planar else np.asarray(init, dtype=np.float64)
     guess, fitness, rmse = current, 0.0, 0.0
     stages = tuple(scales)
@@ -450,13 +462,13 @@ def _register(
             target,
             current,
             yaw_search,
-            max_correspondence * scales[0],
-            max_correspondence * min(scales),
+            d * scales[0],
+            d * min(scales),
             criteria=criteria,
             planar=planar,
-            min_fitness=min_fitness,
-            kernel=kernel,
-            axis=yaw_axis,
+            min_fitness=params.min_fitness,
+            kernel=params.kernel,
+            axis=params.yaw_axis,
         )
         if best is None:  # the coarsest stage failed from every start, ``init`` included
             return PairResult(transformation=current, fitness=0.0, inlier_rmse=0.0, kept_guess=True)
@@ -467,11 +479,11 @@ def _register(
             source,
             target,
             current,
-            max_correspondence * scale,
-            kernel=kernel,
+            d * scale,
+            kernel=params.kernel,
             criteria=criteria,
             planar=planar,
-            min_fitness=min_fitness,
+            min_fitness=params.min_fitness,
         )
         if stage is None:
             break
@@ -480,9 +492,9 @@ def _register(
     if not moved:
         return PairResult(transformation=current, fitness=0.0, inlier_rmse=0.0, kept_guess=True)
     weak = 0
-    if degeneracy > 0:
+    if params.degeneracy > 0:
         current, weak = keep_guess_where_weak(
-            source, target, current, guess, max_correspondence * min(scales), degeneracy, planar=planar
+            source, target, current, guess, d * min(scales), params.degeneracy, planar=planar
         )
     return PairResult(transformation=current, fitness=fitness, inlier_rmse=rmse, weak_directions=weak)
 
@@ -525,34 +537,6 @@ def keep_guess_where_weak(
     out = np.array(transform, dtype=np.float64)
     out[:dims, 3] -= weak @ (weak.T @ (out[:dims, 3] - np.asarray(guess)[:dims, 3]))
     return out, int(weak.shape[1])
-
-
-def register_with(
-    source: o3d.geometry.PointCloud,
-    target: o3d.geometry.PointCloud,
-    init: np.ndarray,
-    params: RegistrationParams,
-    *,
-    scales: tuple[float, ...] | None = None,
-    yaw_search: bool = True,
-) -> PairResult:
-    """`register_clouds` with every setting from ``params`` (``scales`` overrides its stages;
-    ``yaw_search=False`` starts from ``init`` alone, e.g. for loop closures)."""
-    return register_clouds(
-        source,
-        target,
-        init,
-        max_correspondence=params.max_correspondence,
-        scales=params.scales if scales is None else scales,
-        iterations=params.iterations,
-        planar=params.planar,
-        min_fitness=params.min_fitness,
-        kernel=params.kernel,
-        yaw_search=params.yaw_search if yaw_search else (),
-        yaw_axis=params.yaw_axis,
-        degeneracy=params.degeneracy,
-        correlative=params.correlative if yaw_search else None,
-    )
 
 
 def _icp_stage(
@@ -743,22 +727,18 @@ def incremental_icp(
     return IncrementalResult(poses=poses, pairs=pairs, clouds=clouds, seconds=time.perf_counter() - started)
 
 
-def pair_report(pairs: list[PairResult]) -> dict[str, list[int]]:
-    """Which frames' ICP kept its guess (every stage failed) and which had weakly constrained
-    translation directions reset to the guess, for a run's artifacts (frame k: pair k-1 -> k)."""
-    return {
+def pair_report(pairs: list[PairResult]) -> tuple[dict[str, list[int]], dict[str, int]]:
+    """A run's report of its ICP pairs (frame k: pair k-1 -> k): for its artifacts, the frames
+    where ICP kept its guess (every stage failed) and where weakly constrained translation
+    directions were reset to the guess; for its metrics, their counts ``icp_kept_guess`` and
+    ``icp_weak_pairs``."""
+    frames = {
         "kept_guess_frames": [k + 1 for k, p in enumerate(pairs) if p.kept_guess],
         "weak_direction_frames": [k + 1 for k, p in enumerate(pairs) if p.weak_directions],
     }
-
-
-def pair_metrics(pairs: list[PairResult]) -> dict[str, int]:
-    """Counts for a run's metrics: ``icp_kept_guess`` (pairs where ICP failed and kept its guess)
-    and ``icp_weak_pairs`` (pairs with a translation direction reset to the guess)."""
-    return {
-        "icp_kept_guess": sum(p.kept_guess for p in pairs),
-        "icp_weak_pairs": sum(p.weak_directions > 0 for p in pairs),
-    }
+    kept, weak = frames["kept_guess_frames"], frames["weak_direction_frames"]
+    counts = {"icp_kept_guess": len(kept), "icp_weak_pairs": len(weak)}
+    return frames, counts
 
 
 def _local_map(clouds: list[Any], poses3: np.ndarray, k: int, params: RegistrationParams) -> o3d.geometry.PointCloud:

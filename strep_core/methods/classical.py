@@ -99,13 +99,14 @@ def icp_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: RunConte
     params = reg.resolve_params(seq, config.classical)
     progress = _Progress(seq, init, ctx, total=len(seq), interval=config.classical.event_interval)
     out = reg.incremental_icp(seq, init, params, on_frame=lambda k, poses: progress.step(k + 1, poses, k + 1))
+    frames, counts = reg.pair_report(out.pairs)
     return MethodOutput(
         poses=out.poses,
         iterations=len(seq),
         history=progress.history,
         timings={"registration": out.seconds},
-        artifacts={"fitness": [p.fitness for p in out.pairs], **reg.pair_report(out.pairs)},
-        metrics=reg.pair_metrics(out.pairs),
+        artifacts={"fitness": [p.fitness for p in out.pairs], **frames},
+        metrics=counts,
     )
 
 
@@ -216,6 +217,7 @@ def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
     if not np.isfinite(optimised).all():
         raise RegistrationError("the pose graph optimisation returned non-finite poses")
     poses = reg.from_se3(optimised, seq.dim)  # node 0 (the reference) stays at init[0]
+    frames, counts = reg.pair_report(odo.pairs)
     progress.step(2 * k_frames, poses, k_frames)
     return MethodOutput(
         poses=poses,
@@ -226,9 +228,9 @@ def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
             "loop_candidates": len(candidates),
             "loop_edges": kept,
             "graph_edges": len(graph.edges),
-            **reg.pair_report(odo.pairs),
+            **frames,
         },
-        metrics=reg.pair_metrics(odo.pairs),
+        metrics=counts,
     )
 
 
