@@ -66,7 +66,10 @@ def test_sample_is_rebuilt_by_its_generator(name: str) -> None:
     fresh = getattr(importlib.import_module(module), attr)(**info.params)
     seq = load_sample(name)
     assert info.seed == info.params["seed"]
-    assert seq.poses is not None and np.array_equal(seq.poses, fresh.poses)
+    assert seq.poses is not None and fresh.poses is not None
+    # sin, cos and matrix products differ in the last place across CPUs and BLAS builds: the
+    # poses agree to far below a unit of the sample (px or m), not bit for bit
+    np.testing.assert_allclose(seq.poses, fresh.poses, rtol=0, atol=1e-9)
     for a, b in zip(seq.frames, fresh.frames, strict=True):
         assert a.shape == b.shape
         np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-4)  # stored as float32
