@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
@@ -101,7 +101,7 @@ class ComparisonCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     sequence_id: str = Field(min_length=1, max_length=200)
-    methods: list[str] = Field(
+    methods: list[Annotated[str, Field(min_length=1, max_length=64)]] = Field(
         default_factory=lambda: ["strep", "strep-nolink"], min_length=1, max_length=16, description="distinct names"
     )
     config: RunConfig = Field(default_factory=RunConfig, description="shared run configuration (its method is ignored)")

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
@@ -18,8 +18,15 @@ from strep_core.errors import ConfigError
 InitName = Literal["auto", "identity", "odometry", "ground_truth", "icp", "multiway", "kiss", "fpfh"]
 
 
+# A layer width, and the most points any per-frame count may ask for: bounds that keep a
+# request from allocating terabytes in a worker (the defaults are far below them).
+Width = Annotated[int, Field(ge=1, le=4096)]
+MAX_POINTS = 1_000_000
+
+
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    # allow_inf_nan=False: Infinity/NaN (which JSON bodies may carry) are refused, never stored as null
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
 
 # ---- classical baselines -------------------------------------------------------------------
@@ -43,6 +50,7 @@ class ClassicalConfig(_Section):
     icp_scales: list[float] = Field(
         default=[2.0, 1.0, 0.5],
         min_length=1,
+        max_length=16,
         description="coarse-to-fine ICP stages, multipliers of the correspondence distance",
     )
     icp_iterations: int = Field(default=50, ge=1, le=1000, description="ICP iterations per stage")
@@ -121,6 +129,7 @@ class ClassicalConfig(_Section):
     loop_scales: list[float] | None = Field(
         default=None,
         min_length=1,
+        max_length=16,
         description="ICP stages of loop-closure edges; None: icp_scales without its coarsest stage",
     )
     edge_prune_threshold: float = Field(
@@ -173,12 +182,14 @@ class ModelConfig(_Section):
     (see `strep_core.optimize`)."""
 
     latent_dim: int | None = Field(default=None, ge=1, le=512, description="None: 16 in 2D, 24 in 3D")
-    point_layers: list[int] = Field(
-        default=[64, 256, 1024], min_length=1, description="per-point layers of the pose decoder"
+    point_layers: list[Width] = Field(
+        default=[64, 256, 1024], min_length=1, max_length=16, description="per-point layers of the pose decoder"
     )
-    head_layers: list[int] = Field(default=[512, 128], description="fully connected layers after max-pooling")
-    occupancy_layers: list[int] = Field(
-        default=[64, 256, 512, 256, 128], min_length=1, description="hidden layers of the occupancy MLP"
+    head_layers: list[Width] = Field(
+        default=[512, 128], max_length=16, description="fully connected layers after max-pooling"
+    )
+    occupancy_layers: list[Width] = Field(
+        default=[64, 256, 512, 256, 128], min_length=1, max_length=16, description="hidden layers of the occupancy MLP"
     )
     batch_norm: bool = Field(
         default=False,
@@ -194,6 +205,7 @@ class ModelConfig(_Section):
     decoder_points: int | None = Field(
         default=16,
         ge=8,
+        le=MAX_POINTS,
         description="points per frame fed to the pose decoder: a fixed, evenly strided subset "
         "(the same at every step and in the final pass); None: all points",
     )
@@ -237,10 +249,13 @@ class LossConfig(_Section):
         default=0.1, gt=0, description="robust threshold (x scale) at the start, annealed geometrically; None: constant"
     )
     free_samples: int = Field(default=1, ge=0, le=64, description="free-space samples per ray")
-    occupancy_points: int = Field(default=16, ge=1, description="rays (observed points) per frame per step")
+    occupancy_points: int = Field(
+        default=16, ge=1, le=MAX_POINTS, description="rays (observed points) per frame per step"
+    )
     occupancy_warmup: int = Field(
         default=0,
         ge=0,
+        le=100_000,
         description="first N iterations: the occupancy MLP learns the map, poses get no gradient from it",
     )
 
@@ -263,12 +278,15 @@ class OptimConfig(_Section):
     warmup_iterations: int = Field(
         default=0, ge=0, le=100_000, description="learning rates rise linearly from 0 over this many first steps"
     )
-    batch_frames: int | None = Field(default=None, ge=2, description="frames per batch; None: all")
+    batch_frames: int | None = Field(default=None, ge=2, le=MAX_POINTS, description="frames per batch; None: all")
     points_per_frame: int | None = Field(
-        default=32, ge=8, description="query points per frame per step for Chamfer; None: all"
+        default=32, ge=8, le=MAX_POINTS, description="query points per frame per step for Chamfer; None: all"
     )
     max_points_per_frame: int = Field(
-        default=4096, ge=16, description="working set: frames with more points keep a fixed random subset"
+        default=4096,
+        ge=16,
+        le=MAX_POINTS,
+        description="working set: frames with more points keep a fixed random subset",
     )
     pair_interval: int = Field(default=10, ge=1, description="recompute spatial neighbours every N iterations")
     event_interval: int = Field(default=5, ge=1, description="emit an iteration event every N iterations")
@@ -277,7 +295,7 @@ class OptimConfig(_Section):
 class RunConfig(_Section):
     """Everything one run needs besides its input."""
 
-    method: str = Field(default="strep", description="a name from `strep methods`")
+    method: str = Field(default="strep", max_length=64, description="a name from `strep methods`")
     seed: int = Field(default=0, ge=0, le=2**31 - 1)
     device: Literal["cpu", "cuda", "auto"] = "cpu"
     threads: int | None = Field(default=None, ge=1, le=256, description="torch CPU threads; None: all cores")
@@ -286,12 +304,12 @@ class RunConfig(_Section):
         description="initial guess: auto = odometry if the data has it, else identity, "
         "and for learned methods a pose-graph (multiway) warm start from that",
     )
-    frames: str | None = Field(default=None, description="frame selection start:stop[:step]")
+    frames: str | None = Field(default=None, max_length=64, description="frame selection start:stop[:step]")
     classical: ClassicalConfig = Field(default_factory=ClassicalConfig)
     model: ModelConfig = Field(default_factory=ModelConfig)
     loss: LossConfig = Field(default_factory=LossConfig)
     optim: OptimConfig = Field(default_factory=OptimConfig)
-    from_model: str | None = Field(default=None, description="path of a saved model to start from")
+    from_model: str | None = Field(default=None, max_length=300, description="path of a saved model to start from")
     freeze: bool = Field(default=False, description="with from_model: re-optimise only the latents")
 
     def to_json(self) -> str:

@@ -13,6 +13,8 @@ from strep_core.errors import SequenceError
 Unit = Literal["px", "m"]
 
 MIN_POINTS = 3  # a frame needs at least this many points to be registered at all
+MAX_SELECTION_CHARS = 64  # a frame selection ``start:stop[:step]`` is never longer
+MAX_INDEX_DIGITS = 18  # each index of a selection fits an int64 (and int() never meets its digit limit)
 
 
 @dataclass(frozen=True)
@@ -38,8 +40,11 @@ class FrameSelection:
         text = text.strip()
         if not text:
             return cls()
-        if not re.fullmatch(r"-?\d*:-?\d*(:-?\d*)?", text):
-            raise SequenceError(f"frame selection {text!r} is not of the form start:stop[:step]")
+        if len(text) > MAX_SELECTION_CHARS or not re.fullmatch(r"-?\d*:-?\d*(:-?\d*)?", text):
+            shown = text if len(text) <= MAX_SELECTION_CHARS else text[:MAX_SELECTION_CHARS] + "..."
+            raise SequenceError(f"frame selection {shown!r} is not of the form start:stop[:step]")
+        if any(len(p.lstrip("-")) > MAX_INDEX_DIGITS for p in text.split(":")):
+            raise SequenceError(f"frame selection {text!r}: indices have at most {MAX_INDEX_DIGITS} digits")
         parts = [int(p) if p else None for p in text.split(":")]
         parts += [None] * (3 - len(parts))
         if parts[2] is not None and parts[2] <= 0:

@@ -32,6 +32,7 @@ from strep_core.sequence import FrameSelection
 router = APIRouter(prefix="/jobs", tags=["jobs"])
 
 REPLAY_PAGE = 500
+MAX_EVENT_ID = 2**62  # event ids are SQLite integers (int64); ?after= has the same bound
 IDLE_CHECK_SECONDS = 5.0
 
 
@@ -137,17 +138,15 @@ def event_cursor(
     last_event_id: Annotated[
         str | None, Header(description="resume after this event id (sent by EventSource on reconnection)")
     ] = None,
-    after: Annotated[int | None, Query(ge=0, le=2**62, description="resume after this event id")] = None,
+    after: Annotated[int | None, Query(ge=0, le=MAX_EVENT_ID, description="resume after this event id")] = None,
 ) -> int:
     cursor = after or 0
     if last_event_id is not None and last_event_id.strip():
-        try:
-            value = int(last_event_id.strip())
-        except ValueError:
-            raise HTTPException(400, "Last-Event-ID must be a non-negative integer (an event id)") from None
-        if value < 0:
-            raise HTTPException(400, "Last-Event-ID must be a non-negative integer (an event id)")
-        cursor = max(cursor, value)
+        text = last_event_id.strip()
+        # digits only, at most 19 of them, before int(): no digit-limit ValueError, no id past SQLite's int64
+        if not (len(text) <= 19 and text.isascii() and text.isdigit()) or int(text) > MAX_EVENT_ID:
+            raise HTTPException(400, f"Last-Event-ID must be a non-negative integer up to {MAX_EVENT_ID} (an event id)")
+        cursor = max(cursor, int(text))
     return cursor
 
 
