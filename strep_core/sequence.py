@@ -15,6 +15,8 @@ Unit = Literal["px", "m"]
 MIN_POINTS = 3  # a frame needs at least this many points to be registered at all
 MAX_SELECTION_CHARS = 64  # a frame selection ``start:stop[:step]`` is never longer
 MAX_INDEX_DIGITS = 18  # each index of a selection fits an int64 (and int() never meets its digit limit)
+MAX_COORDINATE = 1e9  # |coordinate| of any point, origin or pose translation, in the sequence's unit
+RIGID_TOLERANCE = 1e-2  # largest entry of R R^T - I accepted in a pose (7-Scenes' own poses are off by 1.4e-4)
 
 
 @dataclass(frozen=True)
@@ -90,6 +92,10 @@ class Sequence:
     meta: dict[str, object] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        for i, f in enumerate(self.frames):
+            _check_real(f, f"frame {i}")
+        for attr in ("origins", "poses", "initial_poses"):
+            _check_real(getattr(self, attr), attr.replace("_", " "))
         self.frames = [np.ascontiguousarray(f, dtype=np.float64) for f in self.frames]
         k = len(self.frames)
         if self.origins is None and k:
@@ -137,6 +143,7 @@ class Sequence:
                 raise SequenceError(f"frame {i} has {len(f)} points; at least {MIN_POINTS} are needed")
             if not np.isfinite(f).all():
                 raise SequenceError(f"frame {i} contains non-finite values (NaN or inf)")
+            _check_range(f, f"frame {i}")
         if len(dims) > 1:
             raise SequenceError(f"frames mix dimensions {sorted(dims)}; all must be 2D or 3D")
         d = dims.pop()
@@ -147,6 +154,7 @@ class Sequence:
             raise SequenceError(f"origins have shape {self.origins.shape}; expected {(k, d)}")
         if not np.isfinite(self.origins).all():
             raise SequenceError("sensor origins contain non-finite values")
+        _check_range(self.origins, "sensor origins")
         if self.indices.shape != (k,):
             raise SequenceError(f"{len(self.indices)} frame indices for {k} frames")
         for attr in ("poses", "initial_poses"):
@@ -159,6 +167,7 @@ class Sequence:
                 raise SequenceError(f"{len(value)} {attr.replace('_', ' ')} for {k} frames")
             if not np.isfinite(value).all():
                 raise SequenceError(f"{attr.replace('_', ' ')} contain non-finite values")
+            _check_rigid(value, attr.replace("_", " "))
         if self.colors is not None and (
             len(self.colors) != k or any(len(c) != len(f) for c, f in zip(self.colors, self.frames, strict=True))
         ):
@@ -207,3 +216,48 @@ class Sequence:
             "has_ground_truth": self.has_ground_truth,
             "has_initial_guess": self.initial_poses is not None,
         }
+
+
+def _check_real(value: object, what: str) -> None:
+    """Refuse arrays of anything but real numbers (complex, strings, booleans) before float64 conversion
+    would drop an imaginary part or parse text."""
+    if value is None:
+        return
+    kind = np.asarray(value).dtype.kind
+    if kind not in "iuf":
+        raise SequenceError(f"{what} has values of type {np.asarray(value).dtype}; real numbers are needed")
+
+
+def _check_range(values: np.ndarray, what: str) -> None:
+    if values.size and float(np.abs(values).max()) > MAX_COORDINATE:
+        raise SequenceError(
+            f"{what} has a coordinate of {float(np.abs(values).max()):.3g}; coordinates must lie within "
+            f"+-{MAX_COORDINATE:g} (in the sequence's unit)"
+        )
+
+
+def _check_rigid(poses: np.ndarray, what: str) -> None:
+    """Each ``(D+1, D+1)`` pose must be rigid: last row ``0 .. 0 1``, an orthonormal rotation block
+    with determinant +1 (to `RIGID_TOLERANCE`), a translation within `MAX_COORDINATE`."""
+    d = poses.shape[-1] - 1
+    last = np.zeros(d + 1)
+    last[d] = 1.0
+    rot = poses[:, :d, :d]
+    row_err = np.abs(poses[:, d, :] - last).max(axis=1)
+    orth_err = np.abs(rot @ np.swapaxes(rot, 1, 2) - np.eye(d)).max(axis=(1, 2))
+    det = np.linalg.det(rot)
+    bad_row = np.flatnonzero(row_err > 1e-6)
+    if len(bad_row):
+        raise SequenceError(f"{what}: pose {bad_row[0]} is not rigid: its last row is not {'0 ' * d}1")
+    bad_rot = np.flatnonzero(~(orth_err <= RIGID_TOLERANCE))
+    if len(bad_rot):
+        i = bad_rot[0]
+        raise SequenceError(
+            f"{what}: pose {i} is not rigid: its rotation block is not orthonormal "
+            f"(R R^T differs from the identity by {orth_err[i]:.3g})"
+        )
+    bad_det = np.flatnonzero(det <= 0)
+    if len(bad_det):
+        i = bad_det[0]
+        raise SequenceError(f"{what}: pose {i} is not rigid: its rotation block is a reflection (det {det[i]:.3g})")
+    _check_range(poses[:, :d, d], what)

@@ -56,6 +56,14 @@ def with_value(arrays: dict[str, np.ndarray], value: float) -> dict[str, np.ndar
     return out
 
 
+def with_poses(arrays: dict[str, np.ndarray], pose: np.ndarray) -> dict[str, np.ndarray]:
+    """``arrays`` with the first ground-truth pose replaced by ``pose``."""
+    out = dict(arrays)
+    out["poses"] = arrays["poses"].copy()
+    out["poses"][0] = pose
+    return out
+
+
 def ply_bytes(points: np.ndarray) -> bytes:
     header = f"ply\nformat ascii 1.0\nelement vertex {len(points)}\nproperty float x\nproperty float y\n"
     header += "property float z\nend_header\n"
@@ -294,6 +302,82 @@ CASES: list[Bad] = [
         400,
         "a sequence needs at least 2 frames, got 1",
         upload("one.npz", npz_bytes(points=GOOD["points"][:32], counts=np.array([32]))),
+    ),
+    # ---- issue 17, item 7: rigid poses, finite real points within range
+    Bad(
+        "scaled poses",
+        "POST",
+        "/api/sequences",
+        400,
+        "poses: pose 0 is not rigid: its rotation block is not orthonormal (R R^T differs from the identity by 3)",
+        upload("scaled.npz", npz_bytes(**with_poses(GOOD, np.diag([2.0, 2.0, 1.0])))),
+    ),
+    Bad(
+        "all-zero poses",
+        "POST",
+        "/api/sequences",
+        400,
+        "poses: pose 0 is not rigid: its last row is not 0 0 1",
+        upload("zeros.npz", npz_bytes(**with_poses(GOOD, np.zeros((3, 3))))),
+    ),
+    Bad(
+        "singular rotation",
+        "POST",
+        "/api/sequences",
+        400,
+        "poses: pose 0 is not rigid: its rotation block is not orthonormal",
+        upload("singular.npz", npz_bytes(**with_poses(GOOD, np.diag([0.0, 0.0, 1.0])))),
+    ),
+    Bad(
+        "mirrored poses",
+        "POST",
+        "/api/sequences",
+        400,
+        "poses: pose 0 is not rigid: its rotation block is a reflection (det -1)",
+        upload("mirror.npz", npz_bytes(**with_poses(GOOD, np.diag([-1.0, 1.0, 1.0])))),
+    ),
+    Bad(
+        "non-rigid initial guess",
+        "POST",
+        "/api/sequences",
+        400,
+        "initial poses: pose 0 is not rigid",
+        upload(
+            "odom.npz",
+            npz_bytes(**GOOD, initial_poses=with_poses(GOOD, np.diag([1.0, 3.0, 1.0]))["poses"]),
+        ),
+    ),
+    Bad(
+        "pose translation of 1e300",
+        "POST",
+        "/api/sequences",
+        400,
+        "poses has a coordinate of 1e+300; coordinates must lie within +-1e+09",
+        upload("far.npz", npz_bytes(**with_poses(GOOD, np.array([[1.0, 0, 1e300], [0, 1, 0], [0, 0, 1]])))),
+    ),
+    Bad(
+        "complex points",
+        "POST",
+        "/api/sequences",
+        400,
+        "frame 0 has values of type complex128; real numbers are needed",
+        upload("complex.npz", npz_bytes(**{**GOOD, "points": GOOD["points"] * (1 + 1j)})),
+    ),
+    Bad(
+        "points given as text",
+        "POST",
+        "/api/sequences",
+        400,
+        "frame 0 has values of type <U",
+        upload("text.npz", npz_bytes(**{**GOOD, "points": GOOD["points"].astype(str)})),
+    ),
+    Bad(
+        "coordinates of 1e300",
+        "POST",
+        "/api/sequences",
+        400,
+        "frame 0 has a coordinate of 1e+300; coordinates must lie within +-1e+09",
+        upload("huge.npz", npz_bytes(**with_value(GOOD, 1e300))),
     ),
     Bad(
         "broken tar",
