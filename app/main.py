@@ -1,6 +1,10 @@
 """The FastAPI application: ``create_app(settings)``.
 
 Run it with ``strep serve`` (see `app.server`), or ``uvicorn --factory app.main:create_app``.
+Either way the settings are checked alike: ``STREP_HOST`` off loopback without
+``STREP_API_TOKEN`` raises `InsecureSettings`, and without a token every request from
+another machine (``uvicorn --host 0.0.0.0``), with a foreign Host or a cross-site Origin is
+refused (see `app.core.guard`).
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ import strep_core
 from app.api.main import api_router
 from app.core.config import Settings, get_settings
 from app.core.errors import install_error_handlers
+from app.core.guard import RequestGuard
 from app.services import Service
 
 log = logging.getLogger("strep.service")
@@ -38,6 +43,7 @@ Errors are `{"detail": "..."}`. See docs/api.md.
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The application. Its lifespan opens the service (store, workers) and closes it."""
     settings = settings or get_settings()
+    settings.check_secure()  # the same refusal as `strep serve`, for ``uvicorn --factory`` too
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -58,6 +64,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.service = None
     install_error_handlers(app)
+    app.add_middleware(RequestGuard, settings=settings)  # inside CORS, so preflights get their answer
     if settings.cors_origins:
         app.add_middleware(
             CORSMiddleware,

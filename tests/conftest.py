@@ -13,6 +13,8 @@ SHARED_DATA = Path(os.environ.get("STREP_SHARED_DATA", ROOT.parent / "shared" / 
 # Services started by the tests (and the servers they spawn) run without the 3D viewer unless a
 # test enables it: no viser server on port 8080 per TestClient.
 os.environ.setdefault("STREP_VIEWER_ENABLED", "false")
+# TestClient sends "Host: testserver"; a service without a token accepts only local Host names.
+os.environ.setdefault("STREP_ALLOWED_HOSTS", "testserver")
 
 
 @pytest.fixture(scope="session")

@@ -6,6 +6,7 @@ data directory (uploads, their temporary folder, results, logs).
 
 from __future__ import annotations
 
+import asyncio
 import gzip
 import io
 import json
@@ -21,7 +22,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from app.core.config import Settings
+from app.core.config import InsecureSettings, Settings
 from app.main import create_app
 
 UPLOAD_LIMIT = 256 * 1024
@@ -747,6 +748,49 @@ CASES: list[Bad] = [
         "Last-Event-ID must be a non-negative integer",
         {"headers": {"Last-Event-ID": "-1"}},
     ),
+    # ---- item 3: a body limit before parsing
+    Bad(
+        "JSON body over the limit",
+        "POST",
+        "/api/jobs",
+        413,
+        "the request body is larger than the limit of 1048576 bytes",
+        {"content": b" " * (2 * 1024 * 1024), "headers": {"Content-Type": "application/json"}},
+    ),
+    # ---- item 5: loopback mode refuses foreign Hosts and cross-site Origins
+    Bad(
+        "foreign Host (DNS rebinding)",
+        "GET",
+        "/api/health",
+        421,
+        "Host 'evil.example' is not this machine",
+        {"headers": {"Host": "evil.example"}},
+    ),
+    Bad("foreign Host on the page", "GET", "/", 421, "is not this machine", {"headers": {"Host": "evil.example:8000"}}),
+    Bad(
+        "cross-site upload",
+        "POST",
+        "/api/sequences",
+        403,
+        "cross-site request from origin 'http://evil.example' refused",
+        {**upload("ok.npz", GOOD_NPZ), "headers": {"Origin": "http://evil.example"}},
+    ),
+    Bad(
+        "cross-site job",
+        "POST",
+        "/api/jobs",
+        403,
+        "cross-site request from origin 'http://localhost.evil.example' refused",
+        {**job(), "headers": {"Origin": "http://localhost.evil.example"}},
+    ),
+    Bad(
+        "opaque origin",
+        "POST",
+        "/api/jobs",
+        403,
+        "cross-site request from origin 'null' refused",
+        {**job(), "headers": {"Origin": "null"}},
+    ),
     Bad("page size zero", "GET", "/api/jobs?limit=0", 422, "query.limit: Input should be greater than or equal to 1"),
     Bad("unknown status filter", "GET", "/api/jobs?status=sleeping", 422, "query.status: Input should be 'queued'"),
     Bad("unknown route", "GET", "/api/nothing", 404, "Not Found"),
@@ -813,3 +857,131 @@ def test_bad_request(case: Bad, env: tuple[TestClient, Path, dict[str, str]]) ->
     assert case.message in body["detail"], body["detail"]
     assert str(data_dir) not in json.dumps(body), "server paths leak into the message"
     assert snapshot(client, data_dir) == before, "a bad request left something behind"
+
+
+# ---- issue 17: checks before any route reads the request ------------------------------------
+
+
+def asgi_post(app: Any, path: str, *, chunks: int, chunk: bytes, headers: dict[str, str]) -> tuple[int, int]:
+    """POST ``chunks`` copies of ``chunk`` straight to the ASGI ``app`` (no lifespan).
+
+    Returns the answer's status and how many chunks the application read.
+    """
+    read = 0
+
+    async def receive() -> dict[str, Any]:
+        nonlocal read
+        if read < chunks:
+            read += 1
+            return {"type": "http.request", "body": chunk, "more_body": read < chunks}
+        return {"type": "http.disconnect"}
+
+    statuses: list[int] = []
+
+    async def send(message: dict[str, Any]) -> None:
+        if message["type"] == "http.response.start":
+            statuses.append(message["status"])
+
+    scope = {
+        "type": "http",
+        "asgi": {"version": "3.0"},
+        "http_version": "1.1",
+        "method": "POST",
+        "scheme": "http",
+        "path": path,
+        "raw_path": path.encode(),
+        "query_string": b"",
+        "root_path": "",
+        "headers": [(k.lower().encode(), v.encode()) for k, v in {"Host": "127.0.0.1:8000", **headers}.items()],
+        "client": ("127.0.0.1", 40000),
+        "server": ("127.0.0.1", 8000),
+    }
+    asyncio.run(app(scope, receive, send))
+    return statuses[0], read
+
+
+CHUNK = bytes(64 * 1024)
+JSON = {"Content-Type": "application/json"}
+
+
+def test_token_is_checked_before_the_body_is_read(tmp_path: Path) -> None:
+    app = create_app(Settings(data_dir=tmp_path, api_token="s3cret"))
+    status, read = asgi_post(app, "/api/jobs", chunks=64, chunk=CHUNK, headers=JSON)
+    assert (status, read) == (401, 0)
+    status, read = asgi_post(app, "/api/sequences", chunks=64, chunk=CHUNK, headers={"Content-Type": "multipart/x"})
+    assert (status, read) == (401, 0)
+
+
+def test_body_limit_applies_before_parsing(tmp_path: Path) -> None:
+    app = create_app(Settings(data_dir=tmp_path, max_body_bytes=256 * 1024))
+    declared = {**JSON, "Content-Length": str(300 * 1024 * 1024)}
+    assert asgi_post(app, "/api/jobs", chunks=64, chunk=CHUNK, headers=declared) == (413, 0)
+    status, read = asgi_post(app, "/api/jobs", chunks=64, chunk=CHUNK, headers=JSON)  # chunked, no length
+    assert status == 413
+    assert read == 256 * 1024 // len(CHUNK) + 1  # stopped at the limit, not at the end of the body
+    bogus = {**JSON, "Content-Length": "9" * 5000}
+    assert asgi_post(app, "/api/jobs", chunks=1, chunk=b"{}", headers=bogus) == (400, 0)
+
+
+def test_factory_refuses_like_strep_serve(tmp_path: Path) -> None:
+    with pytest.raises(InsecureSettings, match=r"refusing to listen on 0\.0\.0\.0: set STREP_API_TOKEN"):
+        create_app(Settings(data_dir=tmp_path, host="0.0.0.0"))
+    create_app(Settings(data_dir=tmp_path, host="0.0.0.0", api_token="t"))  # with a token it is allowed
+
+
+def test_without_a_token_only_this_machine_is_answered(tmp_path: Path) -> None:
+    """``uvicorn --factory app.main:create_app --host 0.0.0.0`` binds off loopback: requests from
+    other machines are refused per connection, with a token they are served."""
+    app = create_app(Settings(data_dir=tmp_path / "open"))
+    with TestClient(app, client=("203.0.113.7", 40000)) as remote:
+        for url in ("/api/health", "/", "/openapi.json"):
+            r = remote.get(url)
+            assert r.status_code == 403, (url, r.text)
+            assert "has no STREP_API_TOKEN, so it answers only on this machine" in r.json()["detail"]
+    with TestClient(app, client=("::ffff:198.51.100.2", 40000)) as mapped:
+        assert mapped.get("/api/health").status_code == 403
+    with TestClient(app, client=("127.0.0.1", 40000)) as local:
+        assert local.get("/api/health").status_code == 200
+    with TestClient(app, client=("::1", 40000)) as local6:
+        assert local6.get("/api/health").status_code == 200
+    secured = create_app(Settings(data_dir=tmp_path / "secured", host="0.0.0.0", api_token="s3cret"))
+    with TestClient(secured, client=("203.0.113.7", 40000)) as remote:
+        assert remote.get("/api/health").status_code == 401
+        assert remote.get("/api/health", headers={"Authorization": "Bearer s3cret"}).status_code == 200
+
+
+def test_loopback_hosts_and_origins_are_accepted(env: tuple[TestClient, Path, dict[str, str]]) -> None:
+    client, _, _ = env
+    for host in ("localhost:8000", "127.0.0.1", "127.0.0.1:8000", "[::1]:8000", "LOCALHOST"):
+        assert client.get("/api/health", headers={"Host": host}).status_code == 200, host
+    for origin in ("http://localhost:8000", "http://127.0.0.1:5173", "http://[::1]:8000"):
+        r = client.get("/api/health", headers={"Origin": origin})
+        assert r.status_code == 200, origin
+
+
+def test_viewer_websocket_refuses_cross_site_origins(tmp_path: Path) -> None:
+    import viser
+    import websockets.exceptions
+    import websockets.sync.client as wsc
+
+    settings = Settings(data_dir=tmp_path, viewer_enabled=True, viewer_port=0)
+    with TestClient(create_app(settings)) as client:
+        port = client.get("/api/health").json()["viewer_port"]
+        url = f"ws://127.0.0.1:{port}"
+        protocol = [f"viser-v{viser.__version__}"]
+
+        def received(origin: str) -> tuple[int, int | None]:
+            """Bytes the viewer sent a client from ``origin``, and its close code (None: still open)."""
+            got = 0
+            with wsc.connect(url, subprotocols=protocol, additional_headers={"Origin": origin}) as ws:
+                try:
+                    while True:
+                        got += len(ws.recv(timeout=2))
+                except TimeoutError:
+                    return got, None
+                except websockets.exceptions.ConnectionClosed as exc:
+                    return got, exc.rcvd.code if exc.rcvd else None
+
+        assert received("http://evil.example") == (0, 1008)
+        got, code = received(f"http://127.0.0.1:{port}")
+        assert code is None and got > 0  # the viewer's own page is served

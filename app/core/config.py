@@ -57,6 +57,14 @@ class Settings(BaseSettings):
     max_concurrent_jobs: int = Field(default=2, ge=1, le=256, description="jobs optimising at once; more queue")
     max_upload_bytes: int = Field(default=512 * MiB, ge=1, description="largest accepted upload (bytes)")
     max_inflated_bytes: int = Field(default=2 * GiB, ge=1, description="most a .zip upload may inflate to (bytes)")
+    max_body_bytes: int = Field(
+        default=1 * MiB, ge=1024, description="largest accepted request body other than an upload (bytes)"
+    )
+    allowed_hosts: Annotated[list[str], NoDecode] = Field(
+        default_factory=list,
+        description="without api_token: Host names accepted besides localhost, 127.0.0.1 and ::1 "
+        "(comma-separated or JSON); other Host headers get 421 (DNS rebinding)",
+    )
     api_token: SecretStr | None = Field(
         default=None, description="bearer token required on every /api call when set (mandatory off loopback)"
     )
@@ -108,7 +116,7 @@ class Settings(BaseSettings):
         default=None, ge=1, le=4096, description="CPUs of the local Ray runtime (ray_address=local); None: all cores"
     )
 
-    @field_validator("cors_origins", "plugins", mode="before")
+    @field_validator("cors_origins", "plugins", "allowed_hosts", mode="before")
     @classmethod
     def _lists(cls, value: Any) -> Any:
         return _split_list(value)

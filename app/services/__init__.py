@@ -10,10 +10,12 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
+from collections.abc import Mapping
 from pathlib import Path
 from typing import IO, TYPE_CHECKING
 
 from app.core.config import Settings, is_loopback
+from app.core.guard import LocalOnly
 from app.services.events import Broadcaster
 from app.services.jobs import JobService
 from app.services.live import LiveFeed
@@ -89,7 +91,15 @@ class Service:
             log.warning(
                 "the 3D viewer on %s has no authentication: anyone who reaches it sees the runs", self.settings.host
             )
-        self.viewer = ViewerServer(host=self.settings.host, port=self.settings.viewer_port)
+        admit = None
+        if self.settings.api_token is None:  # loopback mode: the API's Host and Origin checks
+            local = LocalOnly(self.settings)
+
+            def admit(client: str | None, headers: Mapping[str, str]) -> str | None:
+                refused = local.refusal(client, headers)
+                return None if refused is None else refused.detail
+
+        self.viewer = ViewerServer(host=self.settings.host, port=self.settings.viewer_port, admit=admit)
         self.live = LiveFeed(self.viewer, self.store, self.loader)
         self.live.start()
         self.broadcaster.listen(self.live.publish)

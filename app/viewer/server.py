@@ -35,7 +35,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any
@@ -178,6 +178,9 @@ class ViewerServer:
             pose (a push sends K poses); above, one fused cloud is re-sent per push.
         max_jobs: jobs kept; beyond, the oldest finished ones are removed.
         verbose: let viser print its banner.
+        admit: given a websocket client's address and handshake headers (lower-case names),
+            why it is refused, or None to let it in; a refused client is closed (1008) before
+            any scene data is sent. None: every client is let in.
     """
 
     def __init__(
@@ -192,6 +195,7 @@ class ViewerServer:
         frame_nodes_max: int = 512,
         max_jobs: int = 32,
         verbose: bool = False,
+        admit: Callable[[str | None, Mapping[str, str]], str | None] | None = None,
     ) -> None:
         if max_rate_hz <= 0:
             raise ValueError("max_rate_hz must be positive")
@@ -225,10 +229,33 @@ class ViewerServer:
         self._framed: tuple[str, bool] | None = None  # (group, all extents known) last framed
 
         self.server = viser.ViserServer(host=host, port=port, verbose=verbose)
+        if admit is not None:
+            self._admit_clients(admit)
         self.server.scene.set_up_direction("+z")
         self._build_gui()
         self._thread = threading.Thread(target=self._run, name="strep-viewer-push", daemon=True)
         self._thread.start()
+
+    def _admit_clients(self, admit: Callable[[str | None, Mapping[str, str]], str | None]) -> None:
+        """Check each websocket client before viser sends it anything.
+
+        viser has no handshake hook; its connection callbacks run, in order, before its
+        producers start sending, so this one goes first and closes a refused connection.
+        """
+        ws = self.server._websock_server
+
+        async def check(client: Any) -> None:
+            connection = ws._live_connections.get(client.client_id)
+            if connection is None:
+                return
+            remote = connection.remote_address
+            headers = {k.lower(): v for k, v in connection.request.headers.raw_items()} if connection.request else {}
+            reason = admit(str(remote[0]) if remote else None, headers)
+            if reason is not None:
+                log.warning("viewer: refused a websocket client: %s", reason)
+                await connection.close(1008, reason[:120])
+
+        ws._client_connect_cb.insert(0, check)
 
     # ---- public ----------------------------------------------------------------------------
     @property
