@@ -985,3 +985,51 @@ def test_viewer_websocket_refuses_cross_site_origins(tmp_path: Path) -> None:
         assert received("http://evil.example") == (0, 1008)
         got, code = received(f"http://127.0.0.1:{port}")
         assert code is None and got > 0  # the viewer's own page is served
+
+
+def test_a_killed_reader_leaves_no_extraction_behind(tmp_path: Path) -> None:
+    """Archives are extracted in the data directory's swept folder, emptied when the reader is
+    killed (its timeout) and at start-up; never in the system's temporary folder."""
+    import multiprocessing
+    import threading
+
+    from app.services.sequences import ReaderProcess
+
+    ascii_ply = ply_bytes(np.zeros((3_000_000, 3)))  # about 20 MB, slow to parse: the reader is busy
+    archive = tmp_path / "slow.zip"
+    archive.write_bytes(zip_bytes({"a.ply": ascii_ply, "b.ply": ascii_ply}))
+    extract_dir = tmp_path / "data" / "uploads" / ".extract" / "reader"
+    extract_dir.mkdir(parents=True)
+    reader = ReaderProcess(multiprocessing.get_context("spawn"), plugins=[], timeout=600, extract_dir=extract_dir)
+    errors: list[Exception] = []
+
+    def read() -> None:
+        try:
+            reader.read(archive, None, 1 << 30)
+        except Exception as exc:
+            errors.append(exc)
+
+    thread = threading.Thread(target=read)
+    thread.start()
+    try:
+        deadline = time.monotonic() + 120
+        while not list(extract_dir.glob("strep-zip-*/*")):
+            assert thread.is_alive(), "the read ended before its extraction was seen in the data directory"
+            assert time.monotonic() < deadline, "no extraction appeared in the data directory"
+            time.sleep(0.01)
+        assert reader._proc is not None
+        reader._proc.kill()  # what the read timeout does
+        thread.join(60)
+    finally:
+        reader.close()
+    assert errors and "the reader process was killed by signal SIGKILL" in str(errors[0])
+    assert list(extract_dir.iterdir()) == []
+
+
+def test_startup_sweeps_leftover_extractions(tmp_path: Path) -> None:
+    leftover = tmp_path / "uploads" / ".extract" / "reader" / "strep-zip-old"
+    leftover.mkdir(parents=True)
+    (leftover / "frame.ply").write_bytes(b"x" * 1000)
+    with TestClient(create_app(Settings(data_dir=tmp_path))) as client:
+        assert client.get("/api/health").status_code == 200
+        assert not leftover.exists()

@@ -86,6 +86,7 @@ class SequenceLoader:
         if source is None:
             raise SequenceGone(f"its sequence {sequence_id!r} no longer exists")
         path, selection = source
-        seq: Sequence = load_source(path, selection, self.max_extract_bytes)
+        extract_dir = str(self.sequences.extract_dir / "service")
+        seq: Sequence = load_source(path, selection, self.max_extract_bytes, extract_dir)
         self.reads += 1
         return seq.select(frames) if frames else seq

@@ -54,8 +54,11 @@ class ReaderProcess:
     process; it is started again for the next upload.
     """
 
-    def __init__(self, ctx: SpawnContext, *, plugins: list[str], timeout: float, nice: int = 0) -> None:
+    def __init__(
+        self, ctx: SpawnContext, *, plugins: list[str], timeout: float, extract_dir: Path, nice: int = 0
+    ) -> None:
         self.ctx = ctx
+        self.extract_dir = extract_dir  # where archives are extracted; emptied when the reader is killed
         self.plugins = plugins
         self.nice = nice
         self.timeout = timeout
@@ -88,13 +91,16 @@ class ReaderProcess:
                 self._proc.join(timeout=5)
             code = self._proc.exitcode
             self._proc = None
+            # a reader killed mid-extraction leaves its folder behind
+            for entry in self.extract_dir.glob("strep-zip-*"):
+                shutil.rmtree(entry, ignore_errors=True)
         return code
 
     def read(self, path: Path, selection: str | None, max_extract_bytes: int) -> dict[str, Any]:
         """Read ``path`` as a sequence; returns its summary or raises the reader's `StrepError`."""
         with self._lock:
             conn = self._ensure()
-            conn.send((str(path), selection, max_extract_bytes))
+            conn.send((str(path), selection, max_extract_bytes, str(self.extract_dir)))
             if not conn.poll(self.timeout):
                 assert self._proc is not None
                 self._proc.kill()
@@ -125,14 +131,25 @@ class SequenceService:
         self.settings = settings
         self.store = store
         self.reader = ReaderProcess(
-            ctx, plugins=settings.plugins, timeout=settings.read_timeout_seconds, nice=settings.worker_nice
+            ctx,
+            plugins=settings.plugins,
+            timeout=settings.read_timeout_seconds,
+            extract_dir=self.extract_dir / "reader",
+            nice=settings.worker_nice,
         )
         self._samples: dict[str, dict[str, Any]] | None = None
         self._samples_lock = threading.Lock()
 
     @property
     def tmp_dir(self) -> Path:
+        """Uploads being received: removed at start-up."""
         return self.settings.uploads_dir / ".tmp"
+
+    @property
+    def extract_dir(self) -> Path:
+        """Archives being read: by the reader process in ``reader/``, by the service in ``service/``;
+        removed at start-up."""
+        return self.settings.uploads_dir / ".extract"
 
     # ---- samples ---------------------------------------------------------------------------
     def samples(self) -> dict[str, dict[str, Any]]:
@@ -245,12 +262,15 @@ class SequenceService:
     def clean(self) -> None:
         """At start-up: remove unfinished uploads and folders whose row was never written."""
         shutil.rmtree(self.tmp_dir, ignore_errors=True)
+        shutil.rmtree(self.extract_dir, ignore_errors=True)
         self.settings.uploads_dir.mkdir(parents=True, exist_ok=True)
         known = {Path(p).parts[1] for p in self.store.sequence_paths() if len(Path(p).parts) > 1}
         for entry in self.settings.uploads_dir.iterdir():
             if entry.is_dir() and entry.name not in known:
                 log.warning("removing orphaned upload folder %s", entry)
                 shutil.rmtree(entry, ignore_errors=True)
+        for part in ("reader", "service"):
+            (self.extract_dir / part).mkdir(parents=True)
 
     def close(self) -> None:
         self.reader.close()

@@ -111,15 +111,20 @@ class PipeSink:
             self.broken = True  # the service is gone; the parent watch ends this process
 
 
-def load_source(source: str, selection: str | None, max_extract_bytes: int) -> Any:
-    """The `Sequence` behind a job's or an upload's source (``sample:NAME`` or a stored file)."""
+def load_source(source: str, selection: str | None, max_extract_bytes: int, extract_dir: str | None = None) -> Any:
+    """The `Sequence` behind a job's or an upload's source (``sample:NAME`` or a stored file).
+
+    A ``.zip`` is extracted under ``extract_dir`` (a folder the service sweeps), if given.
+    """
     from strep_core.pipeline import load_input
 
     if source.startswith("sample:"):
         return load_input(source, frames=selection)
     from strep_core.io import load_sequence
 
-    return load_sequence(source, frames=selection, max_extract_bytes=max_extract_bytes)
+    if extract_dir is not None:
+        Path(extract_dir).mkdir(parents=True, exist_ok=True)
+    return load_sequence(source, frames=selection, max_extract_bytes=max_extract_bytes, extract_dir=extract_dir)
 
 
 def open_recorder(path: Path, job_id: str, seq: Any, config: Any) -> Any:
@@ -191,7 +196,7 @@ def run_job(spec: dict[str, Any], conn: multiprocessing.connection.Connection, c
             config = RunConfig.model_validate_json(spec["config"])
             if config.threads is None:
                 config = config.model_copy(update={"threads": spec["threads"]})
-            seq = load_source(spec["source"], spec.get("selection"), spec["max_extract_bytes"])
+            seq = load_source(spec["source"], spec.get("selection"), spec["max_extract_bytes"], spec.get("extract_dir"))
             if tmp_dir.exists():
                 shutil.rmtree(tmp_dir)
             tmp_dir.mkdir(parents=True)
@@ -237,7 +242,7 @@ def summarize(seq: Any) -> dict[str, Any]:
 
 
 def reader_loop(conn: multiprocessing.connection.Connection, plugins: list[str], nice: int = 0) -> None:
-    """Serve read requests ``(path, selection, max_extract_bytes)`` until the pipe closes.
+    """Serve read requests ``(path, selection, max_extract_bytes, extract_dir)`` until the pipe closes.
 
     Replies ``("ok", summary)`` or ``("error", error class name, message)``.
     """
@@ -249,11 +254,11 @@ def reader_loop(conn: multiprocessing.connection.Connection, plugins: list[str],
 
     while True:
         try:
-            path, selection, max_bytes = conn.recv()
+            path, selection, max_bytes, extract_dir = conn.recv()
         except (EOFError, OSError):
             return
         try:
-            reply: tuple[Any, ...] = ("ok", summarize(load_source(path, selection, max_bytes)))
+            reply: tuple[Any, ...] = ("ok", summarize(load_source(path, selection, max_bytes, extract_dir)))
         except StrepError as exc:
             reply = ("error", type(exc).__name__, str(exc))
         except MemoryError:

@@ -206,6 +206,7 @@ def load_sequence(
     *,
     frames: str | FrameSelection | None = None,
     max_extract_bytes: int = DEFAULT_MAX_EXTRACT_BYTES,
+    extract_dir: str | Path | None = None,
     **options: Any,
 ) -> Sequence:
     """Read a sequence from any supported input (see `FORMATS`), dispatching on the path.
@@ -215,6 +216,9 @@ def load_sequence(
             afterwards) and its content dispatched in turn.
         frames: ``start:stop[:step]``; original indices are kept in ``Sequence.indices``.
         max_extract_bytes: the most a ``.zip`` may inflate to (default 2 GiB).
+        extract_dir: the folder (existing) in which a ``.zip`` is extracted, in a ``strep-zip-*``
+            folder of its own; None: the system's temporary folder. A service gives one that it
+            sweeps at start-up, so a reader killed mid-extraction leaves nothing for good.
         **options: passed to the reader (e.g. ``max_range`` for CARMEN, ``stride`` for depth).
 
     Raises:
@@ -225,7 +229,7 @@ def load_sequence(
     path = Path(source)
     fmt = detect_format(path)
     if fmt == "zip":
-        with tempfile.TemporaryDirectory(prefix="strep-zip-") as tmp:
+        with tempfile.TemporaryDirectory(prefix="strep-zip-", dir=extract_dir) as tmp:
             extract_zip(path, tmp, max_bytes=max_extract_bytes)
             inner = _content_root(Path(tmp))
             if inner.is_file() and inner.name.lower().endswith(".zip"):
