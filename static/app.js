@@ -263,7 +263,7 @@ async function start() {
     const cmp = await api("/api/comparisons", {
       method: "POST",
       headers: { "Content-Type": "application/json" },
-      body: JSON.stringify({ sequence_id: $("#sequence").value, methods, config: { optim } }),
+      body: JSON.stringify({ sequence_id: $("#sequence").value, methods, config: { start: $("#start-mode").value, optim } }),
     });
     say(`comparison ${cmp.id} started`);
     showComparison(cmp);
@@ -348,6 +348,10 @@ async function init() {
   window.addEventListener("resize", scheduleRedraw);
   $("#upload-form").addEventListener("submit", upload);
   $("#sequence").addEventListener("change", showSequence);
+  // each start has its own default budget (the service's defaults: SCRATCH_PROFILE, OptimConfig)
+  $("#start-mode").addEventListener("change", (ev) => {
+    $("#iterations").value = ev.target.selectedOptions[0].dataset.iterations;
+  });
   try {
     const health = await api("/api/health");
     // the viewer listens on the API's host: reach it through the name this page was loaded from

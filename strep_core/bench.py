@@ -57,7 +57,10 @@ DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 class BenchCase:
     """One sequence of a suite; ``init`` (a `RunConfig.init`) overrides every method's
     initial guess, ``iterations`` caps learned methods' optimiser iterations, ``classical``
-    overrides `ClassicalConfig` fields for every method (the learned ones' warm start included)."""
+    overrides `ClassicalConfig` fields for every method (the learned ones' warm start included).
+    ``start="scratch"`` (``strep bench --start scratch``) runs the learned methods from identity
+    with no classical step and their from-scratch settings; ``init`` and ``iterations`` then
+    apply to the classical methods only."""
 
     suite: str
     name: str
@@ -65,6 +68,7 @@ class BenchCase:
     init: str | None = None
     iterations: int | None = None
     classical: dict[str, Any] = field(default_factory=dict)
+    start: str = "pose-graph"
 
 
 def _v1_pose0(data: Path, quick: bool) -> Iterator[BenchCase]:
@@ -194,8 +198,16 @@ def method_config(method: str, quick: bool, seq: Sequence) -> RunConfig:
     return cfg
 
 
+QUICK_SCRATCH_ITERATIONS = 400  # --quick --start scratch: enough to form a trajectory from identity
+
+
 def case_config(case: BenchCase, method: str, quick: bool, seq: Sequence) -> RunConfig:
     """`method_config` with the case's initial guess and iteration cap."""
+    from strep_core.methods import get
+
+    if case.start == "scratch" and get(method).learned:
+        optim = {"iterations": QUICK_SCRATCH_ITERATIONS} if quick else {}
+        return RunConfig.build(method=method, start="scratch", optim=optim)
     cfg = method_config(method, quick, seq)
     if case.init is not None:
         cfg = cfg.model_copy(update={"init": case.init})
@@ -358,9 +370,13 @@ def write_docs(path: Path, table: str, report: dict[str, Any]) -> None:
         f"Latest `strep bench{' --quick' if report['quick'] else ''}` ({mode} mode): {len(report['rows'])} runs in "
         f"{report['wall_seconds']:.0f} s on {m['platform']}, {m['cpu_count']} CPU cores, torch {m['torch']}"
         f"{', GPU ' + m['cuda'] if m['cuda'] else ', no GPU'}.\n\n"
-        "Cells: ATE / point L2 (in the sequence unit: px or m) / wall seconds. Learned methods start from the "
-        "pose-graph (`multiway`) warm start; CARMEN windows start every method from identity, with ICP's yaw "
-        "search and constant-velocity prior.\n\n"
+        "Cells: ATE / point L2 (in the sequence unit: px or m) / wall seconds. "
+        + (
+            "Learned methods start from scratch (identity, no classical step). "
+            if report.get("start") == "scratch"
+            else "Learned methods start from the pose-graph (`multiway`) warm start; "
+        )
+        + "CARMEN windows start every method from identity, with ICP's yaw search and constant-velocity prior.\n\n"
         f"{table}\n"
     )
     Path(path).write_text(text)
@@ -399,7 +415,8 @@ def main(
     if bad:
         raise ConfigError(f"unknown suites {bad}; choose from {list(SUITES)}")
     data = args.data or DEFAULT_DATA
-    cases = [c for s in suites for c in SUITES[s](data, args.quick)]
+    start = getattr(args, "start", None) or "pose-graph"
+    cases = [replace(c, start=start) for s in suites for c in SUITES[s](data, args.quick)]
     rows: list[dict[str, Any]] = []
     started = time.perf_counter()
     executor = getattr(args, "executor", "local")
@@ -413,6 +430,7 @@ def main(
     report = {
         "machine": machine_info(),
         "quick": bool(args.quick),
+        "start": start,
         "executor": executor,
         "wall_seconds": time.perf_counter() - started,
         "methods": methods,

@@ -12,8 +12,9 @@ import os
 import sys
 from collections.abc import Sequence as Seq
 from pathlib import Path
-from typing import Any
+from typing import Any, get_args
 
+from strep_core.config import InitName, StartName
 from strep_core.errors import StrepError
 
 EXIT_ERROR = 2
@@ -47,10 +48,13 @@ def build_config(args: argparse.Namespace) -> Any:
         "seed": args.seed,
         "frames": args.frames,
         "init": args.init,
+        "start": args.start,
         "device": args.device,
         "threads": args.threads,
         "from_model": str(args.from_model) if args.from_model else None,
     }
+    if args.init is not None and args.start is None:
+        base.pop("start", None)  # a config file's resolved start yields to a new --init
     base.update({k: v for k, v in named.items() if v is not None})
     if args.freeze:
         base["freeze"] = True
@@ -232,9 +236,16 @@ def make_parser() -> argparse.ArgumentParser:
     run.add_argument("--seed", type=int)
     run.add_argument("--iterations", type=int, help="optimiser iterations (learned methods)")
     run.add_argument(
+        "--start",
+        choices=get_args(StartName),
+        help="learned methods: scratch (from identity, no classical step: the paper's setting) or pose-graph "
+        "(refine the multiway pose graph); auto: scratch if --init identity, else pose-graph",
+    )
+    run.add_argument(
         "--init",
-        choices=["auto", "identity", "odometry", "ground_truth", "icp", "multiway", "kiss", "fpfh"],
-        help="initial guess (auto: odometry if present else identity; learned methods add a pose-graph warm start)",
+        choices=get_args(InitName),
+        help="initial guess (auto: odometry if present else identity; learned methods add a pose-graph warm start "
+        "unless --start scratch)",
     )
     run.add_argument("--device", choices=["cpu", "cuda", "auto"])
     run.add_argument("--threads", type=int, help="CPU threads for torch (default: all cores)")
@@ -271,6 +282,12 @@ def make_parser() -> argparse.ArgumentParser:
     bench.add_argument("--suites", help="comma-separated subset of suites")
     bench.add_argument("--data", type=Path, help="folder of the shared real data (default ../shared/data)")
     bench.add_argument("--docs", type=Path, help="also write the table into this markdown file")
+    bench.add_argument(
+        "--start",
+        choices=["pose-graph", "scratch"],
+        default="pose-graph",
+        help="how the learned methods start: refine the pose graph, or from identity with no classical step",
+    )
     bench.add_argument(
         "--executor",
         choices=["local", "ray"],

@@ -9,13 +9,16 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from strep_core.errors import ConfigError
 
 InitName = Literal["auto", "identity", "odometry", "ground_truth", "icp", "multiway", "kiss", "fpfh"]
+StartName = Literal["auto", "scratch", "pose-graph"]
+# initial guesses that run a classical method first (a from-scratch start runs none)
+CLASSICAL_INITS = frozenset({"icp", "multiway", "kiss", "fpfh"})
 
 
 # A layer width, and the most points any per-frame count may ask for: bounds that keep a
@@ -235,6 +238,13 @@ class LossConfig(_Section):
         "(x scale) in the current estimate; None: temporal neighbours only",
     )
     loop_neighbours: int = Field(default=8, ge=1, le=64, description="spatial neighbours per frame at most")
+    loop_after: float = Field(
+        default=0.0,
+        ge=0,
+        le=1,
+        description="spatial (loop) pairs join the Chamfer term only after this fraction of the iterations "
+        "(from scratch the trajectory has to form before positions mean anything)",
+    )
     chamfer: Literal["point", "plane"] = Field(
         default="plane",
         description="point: squared point-to-point distances (paper); plane: distances along the "
@@ -292,8 +302,31 @@ class OptimConfig(_Section):
     event_interval: int = Field(default=5, ge=1, description="emit an iteration event every N iterations")
 
 
+# The learned methods' settings when they start from scratch (no classical step), applied to
+# every field a request leaves out; measured in docs/design/from-scratch.md. The defaults of
+# the sections are those of the pose-graph warm start.
+SCRATCH_PROFILE: dict[str, dict[str, Any]] = {
+    "model": {"link_init": 1.0},
+    "loss": {"robust": "huber", "loop_radius": None},
+    "optim": {"lr_latent": 1e-2, "iterations": 1000},
+}
+
+
+def _overlay(given: Any, profile: dict[str, Any]) -> dict[str, Any]:
+    """``profile`` under the values of ``given`` (a dict or a section model: its set fields)."""
+    if isinstance(given, BaseModel):
+        given = given.model_dump(exclude_unset=True)
+    return {**profile, **(given or {})}
+
+
 class RunConfig(_Section):
-    """Everything one run needs besides its input."""
+    """Everything one run needs besides its input.
+
+    ``start`` is resolved when the config is built: ``auto`` becomes ``scratch`` when ``init``
+    is ``identity`` and ``pose-graph`` otherwise; ``scratch`` fills the fields left out with
+    `SCRATCH_PROFILE` (and ``init`` ``auto`` with ``identity``). A saved config holds every
+    field, so it reproduces its run whatever the profile becomes.
+    """
 
     method: str = Field(default="strep", max_length=64, description="a name from `strep methods`")
     seed: int = Field(default=0, ge=0, le=2**31 - 1)
@@ -304,6 +337,12 @@ class RunConfig(_Section):
         description="initial guess: auto = odometry if the data has it, else identity, "
         "and for learned methods a pose-graph (multiway) warm start from that",
     )
+    start: StartName = Field(
+        default="auto",
+        description="learned methods: scratch = from identity with no classical step, the paper's setting "
+        "(its own loss and optimiser settings for the fields not given); pose-graph = refine a classical "
+        "warm start (init auto: the multiway pose graph); auto = scratch if init is identity, else pose-graph",
+    )
     frames: str | None = Field(default=None, max_length=64, description="frame selection start:stop[:step]")
     classical: ClassicalConfig = Field(default_factory=ClassicalConfig)
     model: ModelConfig = Field(default_factory=ModelConfig)
@@ -311,6 +350,26 @@ class RunConfig(_Section):
     optim: OptimConfig = Field(default_factory=OptimConfig)
     from_model: str | None = Field(default=None, max_length=300, description="path of a saved model to start from")
     freeze: bool = Field(default=False, description="with from_model: re-optimise only the latents")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _resolve_start(cls, data: Any) -> Any:
+        if not isinstance(data, dict):
+            return data
+        start, init = data.get("start", "auto"), data.get("init", "auto")
+        if start == "auto":
+            start = "scratch" if init == "identity" else "pose-graph"
+        if start == "scratch":
+            if init in CLASSICAL_INITS:
+                raise ValueError(f"start 'scratch' runs no classical step; init {init!r} is one (use pose-graph)")
+            data = {
+                **data,
+                **{name: _overlay(data.get(name), values) for name, values in SCRATCH_PROFILE.items()},
+                "init": "identity" if init == "auto" else init,
+            }
+        elif start == "pose-graph" and init == "identity":
+            raise ValueError("start 'pose-graph' refines a classical warm start; init 'identity' is none (use scratch)")
+        return {**data, "start": start}
 
     def to_json(self) -> str:
         return self.model_dump_json(indent=2)

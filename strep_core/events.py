@@ -38,7 +38,7 @@ class IterationEvent(_Event):
     """Progress of an iterative method, emitted every ``event_interval`` iterations."""
 
     kind: Literal["iteration"] = "iteration"
-    iteration: int = Field(description="iterations done so far (1-based)")
+    iteration: int = Field(description="iterations done so far (0: the starting poses, before any step)")
     total: int
     elapsed: float = Field(description="seconds since the run started")
     losses: dict[str, float] = Field(default_factory=dict, description="loss terms, 'total' included")

@@ -13,78 +13,26 @@ current poses of every frame and the ATE when ground truth exists), calls
 the final poses. `save_model` / `load_model` write and read the trained networks; with
 ``config.from_model`` and ``config.freeze`` only fresh latents are optimised (test-time mode).
 
-Design (each choice measured on v1_pose0 from the ICP warm start, 1.06 px, unless noted;
-ATE in px; numbers from 100-iteration runs unless noted):
+Decisions (measurement histories: docs/design/warm-start.md for the pose-graph start,
+docs/design/from-scratch.md for the start from identity):
 
-* Units: local points and translations are divided by `Sequence.scale` (125 px on
-  v1_pose0, about 2 m on CARMEN and 7-Scenes), so one set of defaults serves px and m.
-* Correction: ``composition="world"`` (rotation about the sensor, translation along world
-  axes; 0.61) beat ``"local"`` (``init @ corr``; 0.66). The decoder's last layer is zero
-  initialised, so iteration 0 is exactly the warm start.
-* Chamfer over neighbourhoods: temporal neighbours within ``+-window`` frames *and* spatial
-  neighbours (frames whose current sensor positions are within ``loop_radius * scale``,
-  recomputed every ``pair_interval`` iterations). Without the spatial pairs nothing
-  improved (1.11); they are what corrects drift. Nearest neighbours by one lifted KD-tree
-  per step (`strep_core.losses`), matched points gathered differentiably.
-* Chamfer form: the paper's squared distances diverged (175 px after 100 iterations:
-  partial overlap pulls frames apart). Truncated squared distances at ``threshold * scale``
-  (annealed geometrically from ``threshold_start``) register; point-to-plane distances
-  (along the matched point's PCA normal) beat point-to-point: 0.45 vs 0.50 on v1_pose0,
-  4.8 vs 7.4 mm on 7-Scenes[0:64:4] (ICP 5.4 mm), and from the ground truth of a simulated
-  3D room they stay within 1 mm where point-to-point drifts 9 mm. Large starting thresholds
-  (0.2) pulled partially overlapping 3D frames 0.28 m off; 0.1 -> 0.02 works in 2D and 3D.
-* Occupancy: off by default (``occupancy_weight=0``). At weights 1, 0.1 and 0.01, with or
-  without a warm-up of the map, its gradients made every run worse (48 frames: 1.6 px
-  without it, 3.0 to 17 px with it; all 256 frames, 300 iterations with a 100-iteration
-  warm-up: 1.63 px at 0.01 and 2.38 px at 0.1 instead of 0.37, in 2.5x the time): the MLP
-  cannot learn the map to pixel accuracy in a few hundred steps, and its BCE pulls points
-  toward the ridge it has learnt.
-* Decoder input: a fixed, evenly strided subset of ``decoder_points`` points per frame (the
-  same in every step and in the final pass, so the pose is a fixed function of the frame):
-  8 points 0.51, 16 points 0.43, 32 points 0.45 (1.7x slower), 64 points no better.
-  Chamfer queries ``points_per_frame=32`` stratified random points per frame and step
-  against *all* points of the neighbour frames (300 iterations: 0.38 with 32, 0.37 with 64
-  at 1.3x the time; 128 no better; on 7-Scenes 32 is as good as 128).
-* No BatchNorm: with it 0.53 instead of 0.45, 1.4x slower, and it couples frames.
-* Batches: ``batch_frames=None`` (all frames, every step); 128 frames gave the same ATE.
-  Batches are contiguous, overlap by ``window`` frames so every temporal pair lies in one,
-  and take in the spatial partners of their frames. The latent chain spans the whole
-  sequence at every step.
-* Learning rates: Adam 1e-3 for the networks and ``w``, 1e-4 for the latents (the paper's);
-  3e-3 for the networks or 1e-3 to 1e-2 for the latents changed the ATE by < 0.03 px. A
-  cosine schedule down to ``final_lr_fraction``. No warm-up by default (``warmup_iterations``:
-  a linear ramp of every learning rate). Adam's first steps move the decoder's correction by a
-  jump (sim2d-small from the pose graph: 0.069 to 0.198 px at iteration 2, back by iteration 5);
-  a 20-step ramp gave 0.355 -> 0.342 px on the quick simulated 2D set (60 iterations),
-  0.296 -> 0.282 px on v1_pose0 (300), CARMEN unchanged (0.725 m), but 0.299 -> 0.316 m on the
-  simulated 3D set, so it is left off. ``w`` starts at 0.5 (0.9: 0.44 instead of
-  0.37 after 300 iterations) and stays within 0.48 to 0.58. In test-time mode the latents alone must
-  move: 1e-4 left a frozen model 40 % worse than its warm start on new frames, 0.1 made it
-  better than a fresh fit (``lr_latent_frozen``).
-* Defaults end to end (registry run, ICP warm start, 2 threads, quiet machine): strep
-  0.37 px, strep-nolink 0.32 px, deepmapping 0.33 px after 300 iterations in about 60 s.
-
-* Warm start: the pose graph (`strep_core.methods.registry.LEARNED_WARM_START`). The design
-  measurements above were made from the ICP warm start; from the pose graph, 60 iterations
-  on three 96-frame simulated 2D trajectories: strep 0.151 / 0.478 / 0.436 px (mean 0.355)
-  against 1.25 / 0.268 / 0.826 px (mean 0.78) from ICP in the previous quick benchmark (pose
-  graph alone: 0.164 / 0.594 / 0.444); v1_pose0
-  after 300 iterations 0.288 px (pose graph 0.338, from ICP 0.38). The truncated Chamfer
-  objective itself ranks the pose graph's trajectory below ICP's on all 8 2D sequences tried,
-  so the choice is also the one the loss would make.
-
-Limits (measured): the corrections are found by gradient descent from the warm start, so a
-warm start with gross errors stays wrong, and drift that no pair of neighbouring frames sees
-is not corrected. On CARMEN windows (yaw search, velocity prior and correlative start in the
-warm start's ICP) every learned variant ends within 0.01 m of its pose-graph start (0.03 to
-0.40 m ATE; before the correlative start, within 0.03 m of 0.14 to 1.97 m),
-although started from the corrected poses themselves strep stays within 0.03 m of them
-on intel[0:100]: the loss has its minimum near the truth, but the 0.4 m of drift of the
-warm start lies in a basin the local Chamfer terms do not leave; larger loop radii or
-thresholds made it worse (0.45 to 1.18 m). From an odometry-like start on intel[0:100] (1 degree and 3 cm of noise per
-step, 0.65 m ATE; the window revisits no place) strep reached only 0.64 m where ICP reaches
-0.25 m: long drift without loop closures is poorly conditioned for per-frame absolute
-corrections.
+* Units: local points and translations are divided by `Sequence.scale`, so one set of
+  defaults serves pixels and metres.
+* The decoder's last layer is zero-initialised: iteration 0 is exactly the starting poses,
+  reported as an `IterationEvent` with ``iteration=0`` so that every chart starts there.
+* Chamfer over neighbourhoods: temporal neighbours within ``+-window`` frames, plus spatial
+  neighbours (sensors within ``loop_radius * scale``, recomputed every ``pair_interval``
+  iterations, from ``loop_after * iterations`` on); truncated or Huber distances, point-to-plane
+  by default, the threshold annealed from ``threshold_start`` to ``threshold``. The paper's
+  plain squared distances diverge under partial overlap (a departure, docs/reproduction.md).
+* Occupancy BCE (the paper's global term) is weighted by ``occupancy_weight``; off by
+  default in both starts, because measured it made every run worse (see the two designs).
+* From scratch (`SCRATCH_PROFILE`): ``w`` starts at 1 (the linked latents then form an
+  integrator of per-frame increments), the latents learn at 1e-2 (the paper: 1e-4), Huber
+  distances, temporal pairs only.
+* Adam, a cosine schedule down to ``final_lr_fraction``; a fixed strided subset of
+  ``decoder_points`` points per frame feeds the decoder; ``points_per_frame`` random queries
+  per frame and step.
 
 Cost per iteration is linear in frames and points: one decoder pass over ``K x
 decoder_points`` points, one KD-tree over the batch's points, ``K x points_per_frame x
@@ -495,10 +443,30 @@ def _optimize(
     base_lrs = [grp["lr"] for grp in optimizer.param_groups] if optimizer else []
     schedule = batch_schedule(k, oc.batch_frames, lc.window)
     pairs_all = np.zeros((0, 2), dtype=np.int64)
+    pairs_found = False  # spatial pairs computed at least once (they may start late: loop_after)
     history: list[dict[str, Any]] = []
     iteration_times: list[float] = []
     clock = _Clock()
     timings = {"setup": time.perf_counter() - t_start}
+
+    def report(it: int, losses_now: dict[str, float]) -> None:
+        cur = _to_world_units(current, prep.scale)
+        ate = metrics.ate(cur, seq.poses) if seq.poses is not None else None
+        elapsed = ctx.elapsed()
+        history.append({"iteration": it, "losses": losses_now, "ate": ate, "elapsed": elapsed})
+        ctx.sink.emit(
+            IterationEvent(
+                iteration=it,
+                total=total,
+                elapsed=elapsed,
+                losses=losses_now,
+                poses=pose_list(g.pose_to_vector(cur)),
+                ate=ate,
+            )
+        )
+
+    if total:
+        report(0, {})  # the starting poses (no loss evaluated yet): charts start at the start
     it = 0
     while it < total:
         assert optimizer is not None
@@ -507,7 +475,9 @@ def _optimize(
         clock.lap("events")  # (time since the last lap: the previous event, if any)
         for grp, lr in zip(optimizer.param_groups, base_lrs, strict=True):
             grp["lr"] = lr * lr_factor(it)
-        if lc.loop_radius is not None and it % oc.pair_interval == 0:
+        loops_on = lc.loop_radius is not None and it >= lc.loop_after * total
+        if loops_on and (it % oc.pair_interval == 0 or not pairs_found):
+            pairs_found = True
             pairs_all = losses.frame_pairs(
                 k,
                 0,
@@ -584,22 +554,9 @@ def _optimize(
         iteration_times.append(time.perf_counter() - t_iter)
 
         if it % oc.event_interval == 0 or it == total:
-            cur = _to_world_units(current, prep.scale)
-            ate = metrics.ate(cur, seq.poses) if seq.poses is not None else None
             values = {"total": float(loss.detach()), "chamfer": 0.0, "occupancy": 0.0}
             values.update({n: float(v.detach()) for n, v in terms.items()})
-            elapsed = ctx.elapsed()
-            history.append({"iteration": it, "losses": values, "ate": ate, "elapsed": elapsed})
-            ctx.sink.emit(
-                IterationEvent(
-                    iteration=it,
-                    total=total,
-                    elapsed=elapsed,
-                    losses=values,
-                    poses=pose_list(g.pose_to_vector(cur)),
-                    ate=ate,
-                )
-            )
+            report(it, values)
     clock.lap("events")
     timings.update(clock.totals)
     if iteration_times:

@@ -28,6 +28,7 @@ from app.server import serve
 from app.services import DataDirBusy, Service
 from app.services.events import Mailbox
 from app.store import StoredEvent
+from strep_core.config import SCRATCH_PROFILE
 from strep_core.events import parse_event
 from strep_core.io.npz import write_npz
 from strep_core.methods import available
@@ -385,6 +386,25 @@ def test_strep_job_with_few_iterations(client: TestClient) -> None:
     assert model.status_code == 200 and len(model.content) > 1000
     events = parse_sse(client.get(f"/api/jobs/{job['id']}/events").text)
     assert [e["data"]["iteration"] for e in events if e["event"] == "iteration"][-1] == 4
+
+
+def test_start_setting_round_trips(client: TestClient) -> None:
+    """``start`` is resolved once, stored in the job's config and served back as stored."""
+    job = create_job(client, "sample:sim2d-small", "strep", frames="0:12", start="scratch", optim={"iterations": 3})
+    assert (job["config"]["start"], job["config"]["init"]) == ("scratch", "identity")
+    assert job["config"]["optim"]["iterations"] == 3  # given: kept
+    assert job["config"]["optim"]["lr_latent"] == SCRATCH_PROFILE["optim"]["lr_latent"]  # left out: the profile's
+    done = wait_job(client, job["id"], FINAL, timeout=300)
+    assert done["status"] == "succeeded", done
+    assert done["config"] == job["config"] and done["metrics"]["initial_guess"] == "identity"
+    events = parse_sse(client.get(f"/api/jobs/{job['id']}/events").text)
+    its = [e["data"] for e in events if e["event"] == "iteration"]
+    assert its[0]["iteration"] == 0 and its[0]["ate"] == pytest.approx(done["metrics"]["initial_ate"], rel=1e-6)
+    warm = create_job(client, "sample:sim2d-small", "identity", frames="0:12")
+    assert (warm["config"]["start"], warm["config"]["optim"]["lr_latent"]) == ("pose-graph", 1e-4)
+    for body in ({"start": "scratch", "init": "multiway"}, {"start": "pose-graph", "init": "identity"}):
+        r = client.post("/api/comparisons", json={"sequence_id": "sample:sim2d-small", "config": body})
+        assert r.status_code == 422 and "start" in r.text, r.text
 
 
 # ---- cancel, crash, queue ------------------------------------------------------------------------

@@ -61,7 +61,8 @@ def test_strep_lowers_the_ate_of_its_warm_start(strep_run, small: Sequence) -> N
     initial = result.metrics["initial_ate"]
     assert initial == pytest.approx(metrics.ate(small.initial_poses, small.poses))
     assert result.metrics["ate"] < 0.5 * initial, (initial, result.metrics["ate"])
-    losses = [h["losses"]["total"] for h in result.history]
+    assert result.history[0]["iteration"] == 0 and result.history[0]["ate"] == pytest.approx(initial)
+    losses = [h["losses"]["total"] for h in result.history[1:]]  # iteration 0: no loss evaluated yet
     assert losses[-1] < losses[0]
     assert result.iterations == 40
     assert result.poses.shape == (48, 3, 3)
@@ -72,10 +73,10 @@ def test_events_arrive_in_order(strep_run, small: Sequence) -> None:
     kinds = [e.kind for e in sink.events]
     assert kinds[0] == "start" and kinds[-1] == "result"
     its = [e for e in sink.events if e.kind == "iteration"]
-    assert [e.iteration for e in its] == list(range(5, 41, 5))
+    assert [e.iteration for e in its] == list(range(0, 41, 5))  # 0: the warm start
     assert all(e.total == 40 for e in its)
     assert all(len(e.poses) == len(small) and len(e.poses[0]) == 3 for e in its)
-    assert set(its[0].losses) == {"total", "chamfer", "occupancy"}
+    assert its[0].losses == {} and set(its[1].losses) == {"total", "chamfer", "occupancy"}
     assert all(e.ate is not None for e in its)
     assert all(a.elapsed <= b.elapsed for a, b in itertools.pairwise(its))
 
@@ -193,7 +194,7 @@ def test_cancel_stops_within_one_iteration(small: Sequence) -> None:
     with pytest.raises(Cancelled):
         run(small, _config(event_interval=1), sink=CallbackSink(on_event), cancel=token)
     its = [e for e in seen if e.kind == "iteration"]
-    assert [e.iteration for e in its] == [1]
+    assert [e.iteration for e in its] == [0]  # set at the starting poses: not one step taken
     assert [e.kind for e in seen] == ["start", "iteration"]
 
 
@@ -226,7 +227,7 @@ def test_occupancy_warmup_learns_the_map_without_moving_the_poses(small: Sequenc
         update={"loss": cfg.loss.model_copy(update={"occupancy_weight": 1.0, "occupancy_warmup": 20})}
     )
     mapped = run(small, warm)
-    occ = [h["losses"]["occupancy"] for h in mapped.history]
+    occ = [h["losses"]["occupancy"] for h in mapped.history[1:]]  # [0]: the start, no loss yet
     assert occ[0] > 1.0 and occ[-1] < occ[0]  # the MLP learns the map (BCE of a blank MLP: ~1.39)
     # no gradient from the map reached the poses: the same poses as without it
     assert np.array_equal(mapped.poses, plain.poses)
