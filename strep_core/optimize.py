@@ -1,8 +1,8 @@
 """The per-sequence optimisation loop of the learned methods (strep, strep-nolink, deepmapping).
 
-`optimize` fits the networks of `strep_core.model` to one sequence from a warm start
-(``init_poses``: by default the ``multiway`` pose graph, i.e. incremental ICP plus loop
-closures, from the data's odometry or identity), minimising with Adam
+`optimize` fits the networks of `strep_core.model` to one sequence from ``init_poses``
+(``start="pose-graph"``: by default the ``multiway`` pose graph, i.e. incremental ICP plus loop
+closures; ``start="scratch"``: identity, the paper's setting), minimising with Adam
 
     L = chamfer_weight * Chamfer(frames, neighbours) + occupancy_weight * occupancy BCE
 

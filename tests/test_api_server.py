@@ -232,8 +232,9 @@ def test_strep_job_streams_to_the_end(server: Server) -> None:
         )
         with c.stream("GET", f"/api/jobs/{job['id']}/events") as resp:
             events = SSE(resp).rest()
-        assert [e["data"]["iteration"] for e in events if e["event"] == "iteration"] == [2, 4, 6]
-        assert all(e["data"]["losses"] for e in events if e["event"] == "iteration")
+        its = [e["data"] for e in events if e["event"] == "iteration"]
+        assert [e["iteration"] for e in its] == [0, 2, 4, 6]  # 0: the starting poses
+        assert its[0]["ate"] is not None and all(e["losses"] for e in its[1:])
         assert events[-1]["data"]["status"] == "succeeded"
         done = c.get(f"/api/jobs/{job['id']}").json()
         assert "model.pt" in done["files"]

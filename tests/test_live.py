@@ -189,7 +189,7 @@ def test_comparison_recording_and_viewer(client: TestClient, tmp_path: Path) -> 
         )
         events = events_of(client, ids[key])
         (result,) = [e for e in events if e.kind == "result"]
-        assert rec.runs[key].iterations == list(range(1, iterations + 1))
+        assert rec.runs[key].iterations == list(range(0, iterations + 1))  # 0: the starting poses
         assert_poses_equal(rec.runs[key].last_poses, poses_to_matrices(result.poses))
         # ... and each job's own recording says the same
         own = tmp_path / f"{key}.rrd"
@@ -207,7 +207,7 @@ def test_comparison_recording_and_viewer(client: TestClient, tmp_path: Path) -> 
     assert viewer.wait_idle(10)
     for job_id in ids.values():
         info = viewer.jobs()[job_id]
-        assert info["finished"] and info["history"] == iterations and info["group"] == cmp["id"]
+        assert info["finished"] and info["history"] == iterations + 1 and info["group"] == cmp["id"]
     assert viewer.replay_state()["selected"] == cmp["id"]
     viewer.set_replay(iteration=3)  # replay works on the reopened run
     assert viewer.wait_idle(10)
