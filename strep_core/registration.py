@@ -50,6 +50,7 @@ from strep_core import geometry as g
 from strep_core.config import ClassicalConfig
 from strep_core.correlative import CorrelativeParams, correlative_match
 from strep_core.errors import RegistrationError
+from strep_core.scanmatch import ScanMatcher, ScanMatchParams
 from strep_core.sequence import Sequence
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -81,6 +82,7 @@ class RegistrationParams:
         correlative: 2D: also start from a correlative scan match (see `register_clouds`).
         velocity_prior: incremental ICP starts each pair from the previous pair's estimated
             motion (constant velocity) instead of the initial guess's relative motion.
+        global_match: 2D: also start from a global scan match (see `register_with`).
     """
 
     dim: int
@@ -100,6 +102,7 @@ class RegistrationParams:
     degeneracy: float = 0.0
     correlative: CorrelativeParams | None = None
     velocity_prior: bool = False
+    global_match: ScanMatchParams | None = None
 
     @property
     def planar(self) -> bool:
@@ -128,6 +131,16 @@ def resolve_params(seq: Sequence, cfg: ClassicalConfig) -> RegistrationParams:
             resolution=d / 7.0,
             sigma=d / 3.5,
         )
+    global_match = None
+    if seq.dim == 2 and cfg.icp_global != "off":
+        global_match = ScanMatchParams(
+            window=cfg.icp_global_window * s,
+            resolution=cfg.icp_global_resolution * s,
+            yaw_step=float(np.radians(cfg.icp_global_yaw_step)),
+            max_range=cfg.icp_global_range * s,
+            prior_weight=cfg.icp_global_prior,
+            prior_scale=s,
+        )
     return RegistrationParams(
         dim=seq.dim,
         max_correspondence=d,
@@ -146,6 +159,7 @@ def resolve_params(seq: Sequence, cfg: ClassicalConfig) -> RegistrationParams:
         degeneracy=cfg.icp_degeneracy,
         correlative=correlative,
         velocity_prior=cfg.icp_motion_prior == "velocity",
+        global_match=global_match,
     )
 
 
@@ -413,6 +427,7 @@ def register_with(
     *,
     scales: tuple[float, ...] | None = None,
     yaw_search: bool = True,
+    prior: np.ndarray | None = None,
 ) -> PairResult:
     """Pairwise ICP with every setting from ``params`` (what each does: `register_clouds`).
 
@@ -420,17 +435,31 @@ def register_with(
     yaw search or the correlative start (e.g. for loop closures)."""
     stages = params.scales if scales is None else tuple(scales)
     first = _register(source, target, init, params, stages, params.yaw_search if yaw_search else ())
-    if params.correlative is None or not params.planar or not yaw_search:
+    if not params.planar or not yaw_search or (params.correlative is None and params.global_match is None):
         return first
     from strep_core._open3d import o3d
 
     guess = from_se3(project_planar(init)[None], 2)[0]
-    start, _ = correlative_match(np.asarray(source.points), np.asarray(target.points), guess, params.correlative)
-    second = _register(source, target, g.to_se3(start), params, stages, ())
+    src2, tgt2 = np.asarray(source.points)[:, :2], np.asarray(target.points)[:, :2]
+    best = first
+    if params.global_match is not None:
+        # one objective decides: the matcher's score (likelihood field + motion prior) of each
+        # ICP result; ICP from the global match wins only when it scores higher
+        t_prior = None if prior is None else np.asarray(prior, dtype=np.float64)[:2, -1]
+        matcher = ScanMatcher(tgt2, params.global_match, center=guess[:2, 2])
+        found = matcher.match(src2, guess, prior=t_prior)
+        other = _register(source, target, g.to_se3(found.pose), params, stages, ())
+        scores = [matcher.evaluate(src2, from_se3(r.transformation[None], 2)[0], prior=t_prior) for r in (first, other)]
+        if scores[1] > scores[0]:
+            best = other
+    if params.correlative is None:
+        return best
     fine = params.max_correspondence * min(stages)
     evaluate = o3d.pipelines.registration.evaluate_registration
-    fit = [evaluate(source, target, fine, r.transformation).fitness for r in (first, second)]
-    return second if fit[1] > fit[0] + 0.01 else first
+    start, _ = correlative_match(src2, tgt2, guess, params.correlative)
+    second = _register(source, target, g.to_se3(start), params, stages, ())
+    fit = [evaluate(source, target, fine, r.transformation).fitness for r in (best, second)]
+    return second if fit[1] > fit[0] + 0.01 else best
 
 
 def _register(
@@ -716,7 +745,8 @@ def incremental_icp(
             target = clouds[k - 1]
             if params.local_map > 1:
                 target = _local_map(clouds, poses3, k, params)
-            res = register_with(clouds[k], target, guess, params)
+            prior = _step_prior(pairs)
+            res = register_with(clouds[k], target, guess, params, prior=prior)
             pairs.append(res)
             poses3[k] = poses3[k - 1] @ res.transformation
             if params.planar:
@@ -725,6 +755,18 @@ def incremental_icp(
                 on_frame(k, from_se3(poses3, seq.dim))
     poses = from_se3(poses3, seq.dim)
     return IncrementalResult(poses=poses, pairs=pairs, clouds=clouds, seconds=time.perf_counter() - started)
+
+
+def _step_prior(pairs: list[PairResult], n: int = 5) -> np.ndarray | None:
+    """The expected next step: the median translation of the last ``n`` pairs (each in its own
+    frame), no turn; ``None`` before the first pair. Keyframes are taken at steady spacing, and a
+    median forgets one wrong step."""
+    if not pairs:
+        return None
+    steps = np.stack([p.transformation for p in pairs[-n:]])
+    out = np.eye(4)
+    out[:3, 3] = np.median(steps[:, :3, 3], axis=0)
+    return out
 
 
 def pair_report(pairs: list[PairResult]) -> tuple[dict[str, list[int]], dict[str, int]]:
