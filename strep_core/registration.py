@@ -449,8 +449,18 @@ def register_with(
         matcher = ScanMatcher(tgt2, params.global_match, center=guess[:2, 2])
         found = matcher.match(src2, guess, prior=t_prior)
         other = _register(source, target, g.to_se3(found.pose), params, stages, ())
-        scores = [matcher.evaluate(src2, from_se3(r.transformation[None], 2)[0], prior=t_prior) for r in (first, other)]
-        if scores[1] > scores[0]:
+        poses2 = [from_se3(r.transformation[None], 2)[0] for r in (first, other)]
+        apart = g.relative(poses2[0], poses2[1])
+        gm = params.global_match
+        # the same basin (within two cells and two yaw steps): keep ICP from the guess, which the
+        # grid cannot tell apart from it; another basin: the higher score (prior included)
+        same = (
+            np.linalg.norm(apart[:2, 2]) <= 2 * gm.resolution
+            and abs(float(np.arctan2(apart[1, 0], apart[0, 0]))) <= 2 * gm.yaw_step
+        )
+        if not same and matcher.evaluate(src2, poses2[1], prior=t_prior) > matcher.evaluate(
+            src2, poses2[0], prior=t_prior
+        ):
             best = other
     if params.correlative is None:
         return best
