@@ -24,6 +24,11 @@ Data-derived lengths (`resolve_params`), with ``s = Sequence.scale()`` (median p
   neighbouring points (`point_spacing`), so that sparse clouds still find neighbours;
   2D normals from the ``normal_neighbours`` nearest neighbours in the plane.
 
+Global scan match (on by default for 2D data, ``icp_global``): each pair also runs ICP from the
+best pose of `strep_core.scanmatch` (every heading, +-1.5 s, with a prior on the median of the last
+steps); when that ICP result lands in another basin than ICP from the guess, the higher matcher
+score wins.
+
 Optional guards (off by default; the benchmark turns them on per suite, `strep_core.bench`):
 
 * yaw search (``icp_yaw_search``, ``icp_yaw_step``): the coarsest stage also starts from the
