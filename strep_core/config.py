@@ -94,6 +94,31 @@ class ClassicalConfig(_Section):
     icp_correlative_yaw: float = Field(
         default=60.0, gt=0, le=180, description="correlative scan match: yaw window (degrees, 1 degree steps)"
     )
+    icp_global: Literal["auto", "on", "off"] = Field(
+        default="auto",
+        description="ICP: also start each consecutive pair from a global scan match (branch and bound over every "
+        "heading and +-icp_global_window * scale, `strep_core.scanmatch`) and keep it when ICP from there matches "
+        "more points; auto: on for 2D sequences (planar scans), off in 3D",
+    )
+    icp_global_window: float = Field(
+        default=1.5, gt=0, le=20, description="global scan match: translation window, fraction of the scale"
+    )
+    icp_global_resolution: float = Field(
+        default=0.025, gt=0, le=1, description="global scan match: finest grid cell, fraction of the scale"
+    )
+    icp_global_yaw_step: float = Field(
+        default=1.0, gt=0, le=30, description="global scan match: finest yaw step (degrees)"
+    )
+    icp_global_range: float = Field(
+        default=8.0, gt=0, le=1000, description="global scan match: source points within this fraction of the scale"
+    )
+    icp_global_prior: float = Field(
+        default=0.2,
+        ge=0,
+        le=10,
+        description="global scan match: score lost (mean likelihood, 0 to 1) by a translation one scale away "
+        "from the previous pair's (quadratic): breaks the ties of corridors in favour of steady motion; 0: none",
+    )
     icp_degeneracy: float = Field(
         default=0.0,
         ge=0,

@@ -24,6 +24,11 @@ Data-derived lengths (`resolve_params`), with ``s = Sequence.scale()`` (median p
   neighbouring points (`point_spacing`), so that sparse clouds still find neighbours;
   2D normals from the ``normal_neighbours`` nearest neighbours in the plane.
 
+Global scan match (on by default for 2D data, ``icp_global``): each pair also runs ICP from the
+best pose of `strep_core.scanmatch` (every heading, +-1.5 s, with a prior on the median of the last
+steps); when that ICP result lands in another basin than ICP from the guess, the higher matcher
+score wins.
+
 Optional guards (off by default; the benchmark turns them on per suite, `strep_core.bench`):
 
 * yaw search (``icp_yaw_search``, ``icp_yaw_step``): the coarsest stage also starts from the
@@ -50,6 +55,7 @@ from strep_core import geometry as g
 from strep_core.config import ClassicalConfig
 from strep_core.correlative import CorrelativeParams, correlative_match
 from strep_core.errors import RegistrationError
+from strep_core.scanmatch import ScanMatcher, ScanMatchParams
 from strep_core.sequence import Sequence
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -81,6 +87,7 @@ class RegistrationParams:
         correlative: 2D: also start from a correlative scan match (see `register_clouds`).
         velocity_prior: incremental ICP starts each pair from the previous pair's estimated
             motion (constant velocity) instead of the initial guess's relative motion.
+        global_match: 2D: also start from a global scan match (see `register_with`).
     """
 
     dim: int
@@ -100,6 +107,7 @@ class RegistrationParams:
     degeneracy: float = 0.0
     correlative: CorrelativeParams | None = None
     velocity_prior: bool = False
+    global_match: ScanMatchParams | None = None
 
     @property
     def planar(self) -> bool:
@@ -128,6 +136,16 @@ def resolve_params(seq: Sequence, cfg: ClassicalConfig) -> RegistrationParams:
             resolution=d / 7.0,
             sigma=d / 3.5,
         )
+    global_match = None
+    if seq.dim == 2 and cfg.icp_global != "off":
+        global_match = ScanMatchParams(
+            window=cfg.icp_global_window * s,
+            resolution=cfg.icp_global_resolution * s,
+            yaw_step=float(np.radians(cfg.icp_global_yaw_step)),
+            max_range=cfg.icp_global_range * s,
+            prior_weight=cfg.icp_global_prior,
+            prior_scale=s,
+        )
     return RegistrationParams(
         dim=seq.dim,
         max_correspondence=d,
@@ -146,6 +164,7 @@ def resolve_params(seq: Sequence, cfg: ClassicalConfig) -> RegistrationParams:
         degeneracy=cfg.icp_degeneracy,
         correlative=correlative,
         velocity_prior=cfg.icp_motion_prior == "velocity",
+        global_match=global_match,
     )
 
 
@@ -413,6 +432,7 @@ def register_with(
     *,
     scales: tuple[float, ...] | None = None,
     yaw_search: bool = True,
+    prior: np.ndarray | None = None,
 ) -> PairResult:
     """Pairwise ICP with every setting from ``params`` (what each does: `register_clouds`).
 
@@ -420,17 +440,41 @@ def register_with(
     yaw search or the correlative start (e.g. for loop closures)."""
     stages = params.scales if scales is None else tuple(scales)
     first = _register(source, target, init, params, stages, params.yaw_search if yaw_search else ())
-    if params.correlative is None or not params.planar or not yaw_search:
+    if not params.planar or not yaw_search or (params.correlative is None and params.global_match is None):
         return first
     from strep_core._open3d import o3d
 
     guess = from_se3(project_planar(init)[None], 2)[0]
-    start, _ = correlative_match(np.asarray(source.points), np.asarray(target.points), guess, params.correlative)
-    second = _register(source, target, g.to_se3(start), params, stages, ())
+    src2, tgt2 = np.asarray(source.points)[:, :2], np.asarray(target.points)[:, :2]
+    best = first
+    if params.global_match is not None:
+        # one objective decides: the matcher's score (likelihood field + motion prior) of each
+        # ICP result; ICP from the global match wins only when it scores higher
+        t_prior = None if prior is None else np.asarray(prior, dtype=np.float64)[:2, -1]
+        matcher = ScanMatcher(tgt2, params.global_match, center=guess[:2, 2])
+        found = matcher.match(src2, guess, prior=t_prior)
+        other = _register(source, target, g.to_se3(found.pose), params, stages, ())
+        poses2 = [from_se3(r.transformation[None], 2)[0] for r in (first, other)]
+        apart = g.relative(poses2[0], poses2[1])
+        gm = params.global_match
+        # the same basin (within two cells and two yaw steps): keep ICP from the guess, which the
+        # grid cannot tell apart from it; another basin: the higher score (prior included)
+        same = (
+            np.linalg.norm(apart[:2, 2]) <= 2 * gm.resolution
+            and abs(float(np.arctan2(apart[1, 0], apart[0, 0]))) <= 2 * gm.yaw_step
+        )
+        if not same and matcher.evaluate(src2, poses2[1], prior=t_prior) > matcher.evaluate(
+            src2, poses2[0], prior=t_prior
+        ):
+            best = other
+    if params.correlative is None:
+        return best
     fine = params.max_correspondence * min(stages)
     evaluate = o3d.pipelines.registration.evaluate_registration
-    fit = [evaluate(source, target, fine, r.transformation).fitness for r in (first, second)]
-    return second if fit[1] > fit[0] + 0.01 else first
+    start, _ = correlative_match(src2, tgt2, guess, params.correlative)
+    second = _register(source, target, g.to_se3(start), params, stages, ())
+    fit = [evaluate(source, target, fine, r.transformation).fitness for r in (best, second)]
+    return second if fit[1] > fit[0] + 0.01 else best
 
 
 def _register(
@@ -716,7 +760,8 @@ def incremental_icp(
             target = clouds[k - 1]
             if params.local_map > 1:
                 target = _local_map(clouds, poses3, k, params)
-            res = register_with(clouds[k], target, guess, params)
+            prior = _step_prior(pairs)
+            res = register_with(clouds[k], target, guess, params, prior=prior)
             pairs.append(res)
             poses3[k] = poses3[k - 1] @ res.transformation
             if params.planar:
@@ -725,6 +770,18 @@ def incremental_icp(
                 on_frame(k, from_se3(poses3, seq.dim))
     poses = from_se3(poses3, seq.dim)
     return IncrementalResult(poses=poses, pairs=pairs, clouds=clouds, seconds=time.perf_counter() - started)
+
+
+def _step_prior(pairs: list[PairResult], n: int = 5) -> np.ndarray | None:
+    """The expected next step: the median translation of the last ``n`` pairs (each in its own
+    frame), no turn; ``None`` before the first pair. Keyframes are taken at steady spacing, and a
+    median forgets one wrong step."""
+    if not pairs:
+        return None
+    steps = np.stack([p.transformation for p in pairs[-n:]])
+    out = np.eye(4)
+    out[:3, 3] = np.median(steps[:, :3, 3], axis=0)
+    return out
 
 
 def pair_report(pairs: list[PairResult]) -> tuple[dict[str, list[int]], dict[str, int]]:
