@@ -27,6 +27,7 @@ from app.main import create_app
 
 UPLOAD_LIMIT = 256 * 1024
 INFLATE_LIMIT = 1024 * 1024
+POINT_LIMIT = 5000
 FRAMES = 8
 
 
@@ -100,6 +101,35 @@ def tar_bytes(entries: dict[str, bytes]) -> bytes:
             info = tarfile.TarInfo(name)
             info.size = len(data)
             tar.addfile(info, io.BytesIO(data))
+    return buf.getvalue()
+
+
+def tgz_bytes(entries: dict[str, bytes]) -> bytes:
+    """A gzip-compressed tar (what a ``.tar`` upload may really be)."""
+    return gzip.compress(tar_bytes(entries))
+
+
+def pcd_bytes(points: np.ndarray) -> bytes:
+    from strep_core.io.pcd import format_pcd
+
+    return format_pcd(points)
+
+
+def deepmapping_frames(frames: int = 4, points: int = 20) -> dict[str, bytes]:
+    rng = np.random.default_rng(2)
+    return {f"{i:03d}.pcd": pcd_bytes(rng.uniform(0, 1, size=(points, 2))) for i in range(frames)}
+
+
+def flaser_lines(scans: int, beams: int = 30) -> bytes:
+    ranges = " ".join(f"{1 + 0.01 * b:.2f}" for b in range(beams))
+    return "".join(
+        f"FLASER {beams} {ranges} {0.1 * i} 0 0 {0.1 * i} 0 0 {i}.0 host {i}.0\n" for i in range(scans)
+    ).encode()
+
+
+def compressed_npz(**arrays: Any) -> bytes:
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
     return buf.getvalue()
 
 
@@ -419,6 +449,77 @@ CASES: list[Bad] = [
         400,
         "not a text CARMEN log",
         upload("bin.log.gz", gzip.compress(bytes(range(256)) * 4)),
+    ),
+    # ---- uploads: one budget for every container and compressed format (issue 17 item 2)
+    Bad(
+        "npz array inflating past the limit",
+        "POST",
+        "/api/sequences",
+        400,
+        f"points.npy: declares more than the limit of {INFLATE_LIMIT} bytes",
+        upload(
+            "bomb.npz",
+            compressed_npz(
+                **{**GOOD, "points": np.zeros((INFLATE_LIMIT // 8, 2)), "counts": np.full(8, INFLATE_LIMIT // 64)}
+            ),
+        ),
+    ),
+    Bad(
+        "npz with too many points",
+        "POST",
+        "/api/sequences",
+        400,
+        f"points.npy: holds more than the limit of {POINT_LIMIT} points",
+        upload(
+            "many.npz",
+            compressed_npz(**{**GOOD, "points": np.zeros((8 * 1000, 2)), "counts": np.full(8, 1000)}),
+        ),
+    ),
+    Bad(
+        "npz of a npz in a zip past the limit",
+        "POST",
+        "/api/sequences",
+        400,
+        f"the limit of {INFLATE_LIMIT} bytes",
+        upload(
+            "inner.zip",
+            zip_bytes(
+                {"seq.npz": compressed_npz(**{**GOOD, "extra": np.zeros(INFLATE_LIMIT // 8 + 1000)})},
+                compression=zipfile.ZIP_STORED,
+            ),
+        ),
+    ),
+    Bad(
+        "gzip tar named .tar inflating past the limit",
+        "POST",
+        "/api/sequences",
+        400,
+        f"inflates to more than the limit of {INFLATE_LIMIT} bytes",
+        upload("frames.tar", tgz_bytes({**deepmapping_frames(), "junk.bin": bytes(2 * INFLATE_LIMIT)})),
+    ),
+    Bad(
+        "tar frame declaring too many points",
+        "POST",
+        "/api/sequences",
+        400,
+        f"holds more than the limit of {POINT_LIMIT} points",
+        upload("dense.tar", tgz_bytes(deepmapping_frames(frames=2, points=POINT_LIMIT // 2 + 100))),
+    ),
+    Bad(
+        "CARMEN log.gz inflating past the limit",
+        "POST",
+        "/api/sequences",
+        400,
+        f"inflates to more than the limit of {INFLATE_LIMIT} bytes",
+        upload("bomb.log.gz", gzip.compress(flaser_lines(5) + b"\n" * (2 * INFLATE_LIMIT))),
+    ),
+    Bad(
+        "CARMEN log with too many readings",
+        "POST",
+        "/api/sequences",
+        400,
+        f"holds more than the limit of {POINT_LIMIT} points",
+        upload("long.log.gz", gzip.compress(flaser_lines(2 * POINT_LIMIT // 30))),
     ),
     # ---- uploads: the form
     Bad("not multipart", "POST", "/api/sequences", 415, "multipart/form-data", {"json": {"file": "x"}}),
@@ -803,7 +904,9 @@ CASES: list[Bad] = [
 @pytest.fixture(scope="module")
 def env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[TestClient, Path, dict[str, str]]]:
     data_dir = tmp_path_factory.mktemp("bad")
-    settings = Settings(data_dir=data_dir, max_upload_bytes=UPLOAD_LIMIT, max_inflated_bytes=INFLATE_LIMIT)
+    settings = Settings(
+        data_dir=data_dir, max_upload_bytes=UPLOAD_LIMIT, max_inflated_bytes=INFLATE_LIMIT, max_points=POINT_LIMIT
+    )
     with TestClient(create_app(settings)) as client:
         seq = client.post("/api/sequences", files={"file": ("good.npz", GOOD_NPZ)})
         assert seq.status_code == 201, seq.text

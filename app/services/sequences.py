@@ -96,11 +96,13 @@ class ReaderProcess:
                 shutil.rmtree(entry, ignore_errors=True)
         return code
 
-    def read(self, path: Path, selection: str | None, max_extract_bytes: int) -> dict[str, Any]:
+    def read(
+        self, path: Path, selection: str | None, max_extract_bytes: int, max_points: int | None = None
+    ) -> dict[str, Any]:
         """Read ``path`` as a sequence; returns its summary or raises the reader's `StrepError`."""
         with self._lock:
             conn = self._ensure()
-            conn.send((str(path), selection, max_extract_bytes, str(self.extract_dir)))
+            conn.send((str(path), selection, max_extract_bytes, str(self.extract_dir), max_points))
             if not conn.poll(self.timeout):
                 assert self._proc is not None
                 self._proc.kill()
@@ -218,7 +220,9 @@ class SequenceService:
         if len(name) > 200 or not all(ch.isprintable() for ch in name):
             raise ConfigError("name: at most 200 printable characters")
         try:
-            summary = self.reader.read(upload.path, selection, self.settings.max_inflated_bytes)
+            summary = self.reader.read(
+                upload.path, selection, self.settings.max_inflated_bytes, self.settings.max_points
+            )
         except StrepError as exc:
             raise type(exc)(_clean(str(exc), upload.path, upload.filename)) from None
         seq_id = new_id("seq")
