@@ -16,18 +16,19 @@ import numpy as np
 
 from strep_core import geometry as g
 from strep_core.errors import FormatError
-from strep_core.io.limits import CHUNK, ReadBudget, declared_cloud_points, open_decompressed
+from strep_core.io.limits import ReadBudget, declared_cloud_points, open_decompressed
 from strep_core.io.pcd import parse_pcd
 from strep_core.sequence import FrameSelection, Sequence
 
 SCALE = 512.0  # DeepMapping stores local points in pixels / 512
+HEAD_BYTES = 64 * 1024  # a PCD header is a few hundred bytes
 _FRAME = re.compile(r"(?:^|/)(\d+)\.pcd$")
 
 
 def _charge_frame(data: bytes, budget: ReadBudget, where: str) -> bytes:
     """A frame's bytes, once the points its PCD header declares are charged (parse_pcd reads
     exactly that many)."""
-    declared = declared_cloud_points(data[:CHUNK])
+    declared = declared_cloud_points(data[:HEAD_BYTES])
     if declared is not None:
         budget.take_points(declared, where)
     return data
@@ -58,8 +59,9 @@ def _read_members(path: Path, budget: ReadBudget) -> tuple[dict[int, bytes], byt
                     continue
                 where = f"{path}:{member.name}"
                 budget.bytes_over(member.size, where, declared=True)
-                if frame:
-                    frames[int(frame.group(1))] = _charge_frame(fobj.read(), budget, where)
+                if frame:  # the header's point count is checked before the rest is read
+                    head = _charge_frame(fobj.read(HEAD_BYTES), budget, where)
+                    frames[int(frame.group(1))] = head + fobj.read()
                 else:
                     mat = fobj.read()
     except (tarfile.TarError, OSError, EOFError) as exc:
