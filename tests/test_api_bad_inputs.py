@@ -1136,3 +1136,56 @@ def test_startup_sweeps_leftover_extractions(tmp_path: Path) -> None:
     with TestClient(create_app(Settings(data_dir=tmp_path))) as client:
         assert client.get("/api/health").status_code == 200
         assert not leftover.exists()
+
+
+# ---- issue 17 item 1: uploads wait for the reader off the server's threads -------------------
+
+
+def test_a_full_upload_queue_answers_429_and_health_never_waits(tmp_path: Path) -> None:
+    """The reader blocks on an event: one upload is being read, one waits in the queue; a third
+    is refused at once (429, Retry-After) while health and reads still answer. Once the reader
+    is released both uploads are kept and the queue has room again."""
+    import threading
+
+    settings = Settings(data_dir=tmp_path, max_pending_uploads=2, viewer_enabled=False)
+    entered, release = threading.Event(), threading.Event()
+
+    def blocked_read(path: Path, selection: str | None, *limits: Any) -> dict[str, Any]:
+        entered.set()
+        assert release.wait(120), "the test never released the reader"
+        return {"name": "x", "frames": FRAMES, "dims": 2, "points": FRAMES * 32, "unit": "m", "has_ground_truth": True}
+
+    with TestClient(create_app(settings)) as client:
+        sequences = client.app.state.service.sequences  # type: ignore[attr-defined]
+        sequences.reader.read = blocked_read
+        answers: dict[str, int] = {}
+
+        def post(name: str) -> None:
+            answers[name] = client.post("/api/sequences", files={"file": (f"{name}.npz", GOOD_NPZ)}).status_code
+
+        first = threading.Thread(target=post, args=("first",))
+        first.start()
+        assert entered.wait(60), "the first upload never reached the reader"
+        second = threading.Thread(target=post, args=("second",))
+        second.start()
+        deadline = time.monotonic() + 60
+        while sequences.pending_uploads < 2:
+            assert time.monotonic() < deadline, "the second upload was never queued"
+            time.sleep(0.01)
+        try:
+            refused = client.post("/api/sequences", files={"file": ("third.npz", GOOD_NPZ)})
+            assert refused.status_code == 429, refused.text
+            assert "too many uploads at once: 2 are being received or read" in refused.json()["detail"]
+            assert int(refused.headers["Retry-After"]) > 0
+            assert client.get("/api/health").status_code == 200
+            assert client.get("/api/methods").status_code == 200
+            assert client.get("/api/sequences").status_code == 200
+            assert first.is_alive() and second.is_alive()
+        finally:
+            release.set()
+            first.join(60)
+            second.join(60)
+        assert answers == {"first": 201, "second": 201}
+        assert sequences.pending_uploads == 0
+        assert client.post("/api/sequences", files={"file": ("fourth.npz", GOOD_NPZ)}).status_code == 201
+        assert not list(sequences.tmp_dir.iterdir()), "a temporary upload was left behind"

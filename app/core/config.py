@@ -62,6 +62,12 @@ class Settings(BaseSettings):
         description="most one read of a sequence may inflate to, all containers and compressed streams "
         "together (.zip, .npz, gzip, .tar; bytes), counted while inflating",
     )
+    max_pending_uploads: int = Field(
+        default=8,
+        ge=1,
+        le=1024,
+        description="uploads being received, waiting for the reader or read at once; more get 429 at once",
+    )
     max_points: int = Field(
         default=20_000_000, ge=1, description="most points one sequence may hold (counted while it is read)"
     )

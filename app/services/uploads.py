@@ -36,10 +36,11 @@ TEXT_FIELDS = ("frames", "name")
 class UploadError(Exception):
     """A malformed or oversized upload request (not a problem of the file's content)."""
 
-    def __init__(self, status_code: int, detail: str) -> None:
+    def __init__(self, status_code: int, detail: str, headers: dict[str, str] | None = None) -> None:
         super().__init__(detail)
         self.status_code = status_code
         self.detail = detail
+        self.headers = headers
 
 
 def upload_format(filename: str) -> tuple[str, str]:
