@@ -1189,3 +1189,29 @@ def test_a_full_upload_queue_answers_429_and_health_never_waits(tmp_path: Path) 
         assert sequences.pending_uploads == 0
         assert client.post("/api/sequences", files={"file": ("fourth.npz", GOOD_NPZ)}).status_code == 201
         assert not list(sequences.tmp_dir.iterdir()), "a temporary upload was left behind"
+
+
+# ---- issue 17 item 10: downloads with a token ---------------------------------------------------
+
+
+def test_result_files_need_the_token_and_name_themselves(tmp_path: Path) -> None:
+    """What the page's token-aware download relies on: the file needs the bearer header (a plain
+    link gets 401) and the answer names the file (Content-Disposition), read by the page's fetch."""
+    settings = Settings(data_dir=tmp_path, api_token="s3cret", viewer_enabled=False)
+    auth = {"Authorization": "Bearer s3cret"}
+    with TestClient(create_app(settings)) as client:
+        job = client.post("/api/jobs", json={"sequence_id": "sample:sim2d-small", "method": "identity"}, headers=auth)
+        assert job.status_code == 201, job.text
+        url = f"/api/jobs/{job.json()['id']}"
+        deadline = time.monotonic() + 120
+        while client.get(url, headers=auth).json()["status"] != "succeeded":
+            assert time.monotonic() < deadline, "the job did not finish"
+            time.sleep(0.05)
+        for name in ("metrics.json", "trajectory.tum"):
+            plain = client.get(f"{url}/files/{name}")
+            assert plain.status_code == 401, plain.text
+            assert plain.headers["www-authenticate"].startswith("Bearer")
+            assert client.get(f"{url}/files/{name}?token=s3cret").status_code == 401  # never in a URL
+            got = client.get(f"{url}/files/{name}", headers=auth)
+            assert got.status_code == 200, got.text
+            assert got.headers["content-disposition"] == f'attachment; filename="{name}"'
