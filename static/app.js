@@ -329,8 +329,39 @@ async function openEntry(key) {
   }
 }
 
+// ---- downloads: a link cannot send the token, so with one the file is fetched and saved ------
+// Without a token the browser follows the link itself (streamed to disk). With one, a plain link
+// would get 401: the file is fetched with the Authorization header and saved from a blob URL,
+// under the name the server gives (Content-Disposition). The token never goes into a URL.
+function isApiDownload(link) {
+  return Boolean(link) && new URL(link.href, location.href).pathname.startsWith("/api/");
+}
+
+async function download(link) {
+  const res = await fetch(link.href, { headers: headers() });
+  if (!res.ok) {
+    const body = await res.json().catch(() => null);
+    throw new Error(`download: ${(body && body.detail) || `${res.status} ${res.statusText}`}`);
+  }
+  const named = /filename="?([^";]+)"?/.exec(res.headers.get("content-disposition") || "");
+  const url = URL.createObjectURL(await res.blob());
+  const a = document.createElement("a");
+  a.href = url;
+  a.download = named ? named[1] : new URL(link.href).pathname.split("/").pop();
+  document.body.appendChild(a);
+  a.click();
+  a.remove();
+  setTimeout(() => URL.revokeObjectURL(url), 60_000);
+}
+
 document.addEventListener("click", async (ev) => {
   const t = ev.target;
+  const link = t.closest?.("a[download]");
+  if (token && isApiDownload(link)) {
+    ev.preventDefault();
+    download(link).catch((e) => say(e.message, true));
+    return;
+  }
   if (t.dataset?.open) { ev.preventDefault(); openEntry(t.dataset.open).catch((e) => say(e.message, true)); }
   if (t.dataset?.view) {
     // the link opens the viewer in its tab; the viewer (shared by all its tabs) switches to this run

@@ -27,6 +27,7 @@ from app.main import create_app
 
 UPLOAD_LIMIT = 256 * 1024
 INFLATE_LIMIT = 1024 * 1024
+POINT_LIMIT = 5000
 FRAMES = 8
 
 
@@ -100,6 +101,35 @@ def tar_bytes(entries: dict[str, bytes]) -> bytes:
             info = tarfile.TarInfo(name)
             info.size = len(data)
             tar.addfile(info, io.BytesIO(data))
+    return buf.getvalue()
+
+
+def tgz_bytes(entries: dict[str, bytes]) -> bytes:
+    """A gzip-compressed tar (what a ``.tar`` upload may really be)."""
+    return gzip.compress(tar_bytes(entries))
+
+
+def pcd_bytes(points: np.ndarray) -> bytes:
+    from strep_core.io.pcd import format_pcd
+
+    return format_pcd(points)
+
+
+def deepmapping_frames(frames: int = 4, points: int = 20) -> dict[str, bytes]:
+    rng = np.random.default_rng(2)
+    return {f"{i:03d}.pcd": pcd_bytes(rng.uniform(0, 1, size=(points, 2))) for i in range(frames)}
+
+
+def flaser_lines(scans: int, beams: int = 30) -> bytes:
+    ranges = " ".join(f"{1 + 0.01 * b:.2f}" for b in range(beams))
+    return "".join(
+        f"FLASER {beams} {ranges} {0.1 * i} 0 0 {0.1 * i} 0 0 {i}.0 host {i}.0\n" for i in range(scans)
+    ).encode()
+
+
+def compressed_npz(**arrays: Any) -> bytes:
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
     return buf.getvalue()
 
 
@@ -419,6 +449,77 @@ CASES: list[Bad] = [
         400,
         "not a text CARMEN log",
         upload("bin.log.gz", gzip.compress(bytes(range(256)) * 4)),
+    ),
+    # ---- uploads: one budget for every container and compressed format (issue 17 item 2)
+    Bad(
+        "npz array inflating past the limit",
+        "POST",
+        "/api/sequences",
+        400,
+        f"points.npy: declares more than the limit of {INFLATE_LIMIT} bytes",
+        upload(
+            "bomb.npz",
+            compressed_npz(
+                **{**GOOD, "points": np.zeros((INFLATE_LIMIT // 8, 2)), "counts": np.full(8, INFLATE_LIMIT // 64)}
+            ),
+        ),
+    ),
+    Bad(
+        "npz with too many points",
+        "POST",
+        "/api/sequences",
+        400,
+        f"points.npy: holds more than the limit of {POINT_LIMIT} points",
+        upload(
+            "many.npz",
+            compressed_npz(**{**GOOD, "points": np.zeros((8 * 1000, 2)), "counts": np.full(8, 1000)}),
+        ),
+    ),
+    Bad(
+        "npz of a npz in a zip past the limit",
+        "POST",
+        "/api/sequences",
+        400,
+        f"the limit of {INFLATE_LIMIT} bytes",
+        upload(
+            "inner.zip",
+            zip_bytes(
+                {"seq.npz": compressed_npz(**{**GOOD, "extra": np.zeros(INFLATE_LIMIT // 8 + 1000)})},
+                compression=zipfile.ZIP_STORED,
+            ),
+        ),
+    ),
+    Bad(
+        "gzip tar named .tar inflating past the limit",
+        "POST",
+        "/api/sequences",
+        400,
+        f"inflates to more than the limit of {INFLATE_LIMIT} bytes",
+        upload("frames.tar", tgz_bytes({**deepmapping_frames(), "junk.bin": bytes(2 * INFLATE_LIMIT)})),
+    ),
+    Bad(
+        "tar frame declaring too many points",
+        "POST",
+        "/api/sequences",
+        400,
+        f"holds more than the limit of {POINT_LIMIT} points",
+        upload("dense.tar", tgz_bytes(deepmapping_frames(frames=2, points=POINT_LIMIT // 2 + 100))),
+    ),
+    Bad(
+        "CARMEN log.gz inflating past the limit",
+        "POST",
+        "/api/sequences",
+        400,
+        f"inflates to more than the limit of {INFLATE_LIMIT} bytes",
+        upload("bomb.log.gz", gzip.compress(flaser_lines(5) + b"\n" * (2 * INFLATE_LIMIT))),
+    ),
+    Bad(
+        "CARMEN log with too many readings",
+        "POST",
+        "/api/sequences",
+        400,
+        f"holds more than the limit of {POINT_LIMIT} points",
+        upload("long.log.gz", gzip.compress(flaser_lines(2 * POINT_LIMIT // 30))),
     ),
     # ---- uploads: the form
     Bad("not multipart", "POST", "/api/sequences", 415, "multipart/form-data", {"json": {"file": "x"}}),
@@ -803,7 +904,9 @@ CASES: list[Bad] = [
 @pytest.fixture(scope="module")
 def env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[TestClient, Path, dict[str, str]]]:
     data_dir = tmp_path_factory.mktemp("bad")
-    settings = Settings(data_dir=data_dir, max_upload_bytes=UPLOAD_LIMIT, max_inflated_bytes=INFLATE_LIMIT)
+    settings = Settings(
+        data_dir=data_dir, max_upload_bytes=UPLOAD_LIMIT, max_inflated_bytes=INFLATE_LIMIT, max_points=POINT_LIMIT
+    )
     with TestClient(create_app(settings)) as client:
         seq = client.post("/api/sequences", files={"file": ("good.npz", GOOD_NPZ)})
         assert seq.status_code == 201, seq.text
@@ -1033,3 +1136,82 @@ def test_startup_sweeps_leftover_extractions(tmp_path: Path) -> None:
     with TestClient(create_app(Settings(data_dir=tmp_path))) as client:
         assert client.get("/api/health").status_code == 200
         assert not leftover.exists()
+
+
+# ---- issue 17 item 1: uploads wait for the reader off the server's threads -------------------
+
+
+def test_a_full_upload_queue_answers_429_and_health_never_waits(tmp_path: Path) -> None:
+    """The reader blocks on an event: one upload is being read, one waits in the queue; a third
+    is refused at once (429, Retry-After) while health and reads still answer. Once the reader
+    is released both uploads are kept and the queue has room again."""
+    import threading
+
+    settings = Settings(data_dir=tmp_path, max_pending_uploads=2, viewer_enabled=False)
+    entered, release = threading.Event(), threading.Event()
+
+    def blocked_read(path: Path, selection: str | None, *limits: Any) -> dict[str, Any]:
+        entered.set()
+        assert release.wait(120), "the test never released the reader"
+        return {"name": "x", "frames": FRAMES, "dims": 2, "points": FRAMES * 32, "unit": "m", "has_ground_truth": True}
+
+    with TestClient(create_app(settings)) as client:
+        sequences = client.app.state.service.sequences  # type: ignore[attr-defined]
+        sequences.reader.read = blocked_read
+        answers: dict[str, int] = {}
+
+        def post(name: str) -> None:
+            answers[name] = client.post("/api/sequences", files={"file": (f"{name}.npz", GOOD_NPZ)}).status_code
+
+        first = threading.Thread(target=post, args=("first",))
+        first.start()
+        assert entered.wait(60), "the first upload never reached the reader"
+        second = threading.Thread(target=post, args=("second",))
+        second.start()
+        deadline = time.monotonic() + 60
+        while sequences.pending_uploads < 2:
+            assert time.monotonic() < deadline, "the second upload was never queued"
+            time.sleep(0.01)
+        try:
+            refused = client.post("/api/sequences", files={"file": ("third.npz", GOOD_NPZ)})
+            assert refused.status_code == 429, refused.text
+            assert "too many uploads at once: 2 are being received or read" in refused.json()["detail"]
+            assert int(refused.headers["Retry-After"]) > 0
+            assert client.get("/api/health").status_code == 200
+            assert client.get("/api/methods").status_code == 200
+            assert client.get("/api/sequences").status_code == 200
+            assert first.is_alive() and second.is_alive()
+        finally:
+            release.set()
+            first.join(60)
+            second.join(60)
+        assert answers == {"first": 201, "second": 201}
+        assert sequences.pending_uploads == 0
+        assert client.post("/api/sequences", files={"file": ("fourth.npz", GOOD_NPZ)}).status_code == 201
+        assert not list(sequences.tmp_dir.iterdir()), "a temporary upload was left behind"
+
+
+# ---- issue 17 item 10: downloads with a token ---------------------------------------------------
+
+
+def test_result_files_need_the_token_and_name_themselves(tmp_path: Path) -> None:
+    """What the page's token-aware download relies on: the file needs the bearer header (a plain
+    link gets 401) and the answer names the file (Content-Disposition), read by the page's fetch."""
+    settings = Settings(data_dir=tmp_path, api_token="s3cret", viewer_enabled=False)
+    auth = {"Authorization": "Bearer s3cret"}
+    with TestClient(create_app(settings)) as client:
+        job = client.post("/api/jobs", json={"sequence_id": "sample:sim2d-small", "method": "identity"}, headers=auth)
+        assert job.status_code == 201, job.text
+        url = f"/api/jobs/{job.json()['id']}"
+        deadline = time.monotonic() + 120
+        while client.get(url, headers=auth).json()["status"] != "succeeded":
+            assert time.monotonic() < deadline, "the job did not finish"
+            time.sleep(0.05)
+        for name in ("metrics.json", "trajectory.tum"):
+            plain = client.get(f"{url}/files/{name}")
+            assert plain.status_code == 401, plain.text
+            assert plain.headers["www-authenticate"].startswith("Bearer")
+            assert client.get(f"{url}/files/{name}?token=s3cret").status_code == 401  # never in a URL
+            got = client.get(f"{url}/files/{name}", headers=auth)
+            assert got.status_code == 200, got.text
+            assert got.headers["content-disposition"] == f'attachment; filename="{name}"'

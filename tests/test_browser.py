@@ -292,3 +292,63 @@ def test_live_comparison_in_page_and_viewer(server: Server, browser: Browser) ->
     api.close()
     viewer.close()
     page.close()
+
+
+def test_downloads_send_the_token(tmp_path: Path, browser: Browser) -> None:
+    """With a token set, the page's download links fetch the file with the Authorization header
+    and save it from a blob URL (a plain link would get 401); the token is in no URL."""
+    token = "browser-s3cret"
+    port = free_port()
+    env = {**os.environ, "STREP_API_TOKEN": token, "STREP_VIEWER_ENABLED": "false", "STREP_WORKER_THREADS": "1"}
+    env.pop("STREP_PLUGINS", None)
+    log = tmp_path / "server.log"
+    args = ["--host", "127.0.0.1", "--port", str(port), "--data-dir", str(tmp_path / "data")]
+    with log.open("wb") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "app.server", *args], cwd=ROOT, stdout=out, stderr=out, env=env)
+    url = f"http://127.0.0.1:{port}"
+    auth = {"Authorization": f"Bearer {token}"}
+    try:
+        deadline = time.monotonic() + 90
+        while True:
+            assert proc.poll() is None, log.read_text(errors="replace")
+            try:
+                if httpx.get(f"{url}/api/health", headers=auth, timeout=2).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            assert time.monotonic() < deadline, log.read_text(errors="replace")
+            time.sleep(0.2)
+        job = httpx.post(f"{url}/api/jobs", json={"sequence_id": SAMPLE, "method": "identity"}, headers=auth).json()
+        while (status := httpx.get(f"{url}/api/jobs/{job['id']}", headers=auth).json()["status"]) not in FINAL:
+            assert time.monotonic() < deadline + 120, "the job did not finish"
+            time.sleep(0.2)
+        assert status == "succeeded"
+        path = f"/api/jobs/{job['id']}/files/metrics.json"
+        assert httpx.get(url + path).status_code == 401  # what a plain link gets
+        expected = httpx.get(url + path, headers=auth).content
+
+        page = browser.new_page(accept_downloads=True)
+        page.goto(f"{url}/?token={token}")
+        page.wait_for_selector("#sequence option", state="attached")
+        # a link as the results table writes it
+        page.evaluate(
+            "path => { const a = document.createElement('a'); a.id = 'dl'; a.href = path;"
+            " a.setAttribute('download', ''); a.textContent = 'json'; document.body.appendChild(a); }",
+            path,
+        )
+        with page.expect_download() as info:
+            page.click("#dl")
+        download = info.value
+        assert download.failure() is None
+        assert Path(download.path()).read_bytes() == expected
+        assert download.suggested_filename == "metrics.json"
+        assert download.url.startswith("blob:") and token not in download.url
+        assert not page.locator("#message.error").count()
+        page.close()
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=10)

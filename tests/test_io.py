@@ -601,3 +601,80 @@ def test_formats_describe_every_dispatch(shared_data: Path) -> None:
     assert detect_format(shared_data / "7scenes") == "depth"
     assert detect_format(shared_data / "stanford_bunny") == "conf"
     assert detect_format(shared_data / "carmen" / "intel-corrected.log.gz") == "carmen"
+
+
+# ---- one read budget (issue 17 item 2) --------------------------------------------------------
+
+
+def _flaser_log(scans: int, beams: int = 10) -> bytes:
+    ranges = " ".join(f"{2 + 0.1 * b:.1f}" for b in range(beams))
+    return "".join(f"FLASER {beams} {ranges} {0.1 * i} 0 0 {0.1 * i} 0 0 {i} h {i}\n" for i in range(scans)).encode()
+
+
+def _tar(entries: dict[str, bytes]) -> bytes:
+    import io
+    import tarfile
+
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w") as tar:
+        for name, data in entries.items():
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            tar.addfile(info, io.BytesIO(data))
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize("compress", ["gzip", "bz2", "lzma"])
+def test_a_compressed_tar_named_tar_is_read_and_budgeted(tmp_path: Path, compress: str) -> None:
+    import importlib
+
+    module = importlib.import_module(compress)
+    frames = {f"{i:03d}.pcd": format_pcd(np.random.default_rng(i).uniform(0, 1, (30, 2))) for i in range(3)}
+    path = tmp_path / "frames.tar"
+    path.write_bytes(module.compress(_tar(frames)))
+    assert len(load_sequence(path)) == 3
+    path.write_bytes(module.compress(_tar({**frames, "junk.bin": bytes(4_000_000)})))
+    with pytest.raises(FormatError, match="inflates to more than the limit of 1000000 bytes"):
+        load_sequence(path, max_extract_bytes=1_000_000)
+
+
+def test_a_carmen_log_is_streamed_line_by_line(tmp_path: Path) -> None:
+    path = tmp_path / "robot.log.gz"
+    path.write_bytes(gzip.compress(_flaser_log(4) + b"#" * (2 << 20)))
+    with pytest.raises(FormatError, match=r"robot\.log\.gz:5: a line longer than 1048576 characters"):
+        load_sequence(path)
+    path.write_bytes(gzip.compress(_flaser_log(40)))
+    assert len(load_sequence(path)) == 40
+    with pytest.raises(FormatError, match="holds more than the limit of 300 points"):
+        load_sequence(path, max_points=300)
+
+
+def test_one_budget_spans_a_zip_and_the_npz_inside(tmp_path: Path) -> None:
+    seq = Sequence(frames=[np.random.default_rng(i).normal(size=(50, 3)) for i in range(3)], poses=None)
+    write_npz(seq, tmp_path / "seq.npz")
+    npz = (tmp_path / "seq.npz").read_bytes()
+    archive = tmp_path / "wrapped.zip"
+    with zipfile.ZipFile(archive, "w", zipfile.ZIP_STORED) as zf:
+        zf.writestr("seq.npz", npz)
+    assert len(load_sequence(archive)) == 3
+    # the zip alone fits, the zip and the arrays together do not
+    with pytest.raises(FormatError, match="the limit of"):
+        load_sequence(archive, max_extract_bytes=len(npz) + 200)
+    with pytest.raises(FormatError, match=r"points\.npy: holds more than the limit of 149 points"):
+        load_sequence(archive, max_points=149)
+    assert not list(tmp_path.glob("strep-zip-*"))
+
+
+def test_point_cloud_headers_are_checked_before_open3d_reads(tmp_path: Path) -> None:
+    from strep_core.io.limits import declared_cloud_points
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i in range(2):
+        write_ply(folder / f"f{i}.ply", np.random.default_rng(i).normal(size=(40, 3)))
+    assert declared_cloud_points((folder / "f0.ply").read_bytes()[:4096]) == 40
+    assert declared_cloud_points(format_pcd(np.zeros((7, 3)))) == 7
+    assert declared_cloud_points(b"POINTS " + b"9" * 5000 + b"\nDATA ascii\n") == 10**18
+    assert len(load_sequence(folder)) == 2
+    with pytest.raises(FormatError, match=r"f1\.ply: declares more than the limit of 60 points"):
+        load_sequence(folder, max_points=60)

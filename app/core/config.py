@@ -56,7 +56,21 @@ class Settings(BaseSettings):
     port: int = Field(default=8000, ge=0, le=65535, description="HTTP port")
     max_concurrent_jobs: int = Field(default=2, ge=1, le=256, description="jobs optimising at once; more queue")
     max_upload_bytes: int = Field(default=512 * MiB, ge=1, description="largest accepted upload (bytes)")
-    max_inflated_bytes: int = Field(default=2 * GiB, ge=1, description="most a .zip upload may inflate to (bytes)")
+    max_inflated_bytes: int = Field(
+        default=2 * GiB,
+        ge=1,
+        description="most one read of a sequence may inflate to, all containers and compressed streams "
+        "together (.zip, .npz, gzip, .tar; bytes), counted while inflating",
+    )
+    max_pending_uploads: int = Field(
+        default=8,
+        ge=1,
+        le=1024,
+        description="uploads being received, waiting for the reader or read at once; more get 429 at once",
+    )
+    max_points: int = Field(
+        default=20_000_000, ge=1, description="most points one sequence may hold (counted while it is read)"
+    )
     max_body_bytes: int = Field(
         default=1 * MiB, ge=1024, description="largest accepted request body other than an upload (bytes)"
     )

@@ -422,6 +422,7 @@ class JobService:
             "threads": self.settings.threads_per_job(),
             "nice": self.settings.worker_nice,
             "max_extract_bytes": self.settings.max_inflated_bytes,
+            "max_points": self.settings.max_points,
             # a worker killed mid-extraction leaves it in its tmp_dir, removed when the job ends
             "extract_dir": str(self.tmp_results / job_id),
             "plugins": list(self.settings.plugins),

@@ -29,9 +29,17 @@ class SequenceLoader:
     recording, written right after its last job, does not read it again.
     """
 
-    def __init__(self, sequences: SequenceService, max_extract_bytes: int, *, keep_seconds: float = 60.0) -> None:
+    def __init__(
+        self,
+        sequences: SequenceService,
+        max_extract_bytes: int,
+        *,
+        max_points: int | None = None,
+        keep_seconds: float = 60.0,
+    ) -> None:
         self.sequences = sequences
         self.max_extract_bytes = max_extract_bytes
+        self.max_points = max_points
         self.keep_seconds = keep_seconds
         self.reads = 0  # inputs actually read (for tests)
         self._lock = threading.Lock()
@@ -87,6 +95,6 @@ class SequenceLoader:
             raise SequenceGone(f"its sequence {sequence_id!r} no longer exists")
         path, selection = source
         extract_dir = str(self.sequences.extract_dir / "service")
-        seq: Sequence = load_source(path, selection, self.max_extract_bytes, extract_dir)
+        seq: Sequence = load_source(path, selection, self.max_extract_bytes, extract_dir, self.max_points)
         self.reads += 1
         return seq.select(frames) if frames else seq

@@ -1,4 +1,10 @@
-"""Sequences: uploads (validated by reading them in a separate process) and bundled samples."""
+"""Sequences: uploads (validated by reading them in a separate process) and bundled samples.
+
+Uploads are read one at a time by one reader process, fed by a thread of its own: a request
+waiting for the reader holds no thread of the server's pool, so health and read endpoints
+never wait on a reader. At most ``max_pending_uploads`` uploads are received, queued or read
+at once (`SequenceService.reserve_upload`); one more is refused at once with 429.
+"""
 
 from __future__ import annotations
 
@@ -12,12 +18,13 @@ import shutil
 import signal
 import threading
 import zipfile
+from concurrent.futures import Future, ThreadPoolExecutor
 from multiprocessing.context import SpawnContext, SpawnProcess
 from pathlib import Path
 from typing import Any
 
 from app.core.config import Settings
-from app.services.uploads import ReceivedUpload
+from app.services.uploads import ReceivedUpload, UploadError
 from app.services.worker import reader_loop
 from app.store import Store, now_iso
 from strep_core import errors as core_errors
@@ -96,11 +103,13 @@ class ReaderProcess:
                 shutil.rmtree(entry, ignore_errors=True)
         return code
 
-    def read(self, path: Path, selection: str | None, max_extract_bytes: int) -> dict[str, Any]:
+    def read(
+        self, path: Path, selection: str | None, max_extract_bytes: int, max_points: int | None = None
+    ) -> dict[str, Any]:
         """Read ``path`` as a sequence; returns its summary or raises the reader's `StrepError`."""
         with self._lock:
             conn = self._ensure()
-            conn.send((str(path), selection, max_extract_bytes, str(self.extract_dir)))
+            conn.send((str(path), selection, max_extract_bytes, str(self.extract_dir), max_points))
             if not conn.poll(self.timeout):
                 assert self._proc is not None
                 self._proc.kill()
@@ -124,6 +133,23 @@ class ReaderProcess:
             self._stop()
 
 
+RETRY_AFTER_SECONDS = 5  # the Retry-After of a 429 for an upload while the queue is full
+
+
+class UploadSlot:
+    """One of the ``max_pending_uploads`` places of an upload (receiving, queued or being read);
+    released once, by whoever holds it last."""
+
+    def __init__(self, owner: SequenceService) -> None:
+        self._owner = owner
+        self._released = False
+
+    def release(self) -> None:
+        if not self._released:
+            self._released = True
+            self._owner._release_slot()
+
+
 class SequenceService:
     """Uploaded sequences (rows in the store, files under ``uploads/``) and bundled samples."""
 
@@ -139,6 +165,9 @@ class SequenceService:
         )
         self._samples: dict[str, dict[str, Any]] | None = None
         self._samples_lock = threading.Lock()
+        self._slots_lock = threading.Lock()
+        self._slots_taken = 0
+        self._reads = ThreadPoolExecutor(max_workers=1, thread_name_prefix="strep-upload-read")
 
     @property
     def tmp_dir(self) -> Path:
@@ -203,6 +232,49 @@ class SequenceService:
         return str(self.settings.data_dir / row["path"]), row["selection"]
 
     # ---- uploads ---------------------------------------------------------------------------
+    @property
+    def pending_uploads(self) -> int:
+        """Uploads being received, waiting for the reader or being read."""
+        with self._slots_lock:
+            return self._slots_taken
+
+    def reserve_upload(self) -> UploadSlot:
+        """A place for one more upload, before its body is read; `UploadError` 429 when all
+        ``max_pending_uploads`` are taken."""
+        limit = self.settings.max_pending_uploads
+        with self._slots_lock:
+            if self._slots_taken >= limit:
+                raise UploadError(
+                    429,
+                    f"too many uploads at once: {limit} are being received or read; retry later",
+                    {"Retry-After": str(RETRY_AFTER_SECONDS)},
+                )
+            self._slots_taken += 1
+        return UploadSlot(self)
+
+    def _release_slot(self) -> None:
+        with self._slots_lock:
+            self._slots_taken -= 1
+
+    def submit_upload(self, upload: ReceivedUpload, slot: UploadSlot) -> Future[dict[str, Any]]:
+        """Queue ``upload`` for the reader (`add_upload` on the reader's thread). The upload's
+        temporary file and its slot are the queue's from now on: both are let go when the read
+        ends, whether or not anyone still waits for it."""
+
+        def read() -> dict[str, Any]:
+            try:
+                return self.add_upload(upload)
+            finally:
+                upload.path.unlink(missing_ok=True)
+                slot.release()
+
+        try:
+            return self._reads.submit(read)
+        except RuntimeError:  # shutting down
+            upload.path.unlink(missing_ok=True)
+            slot.release()
+            raise
+
     def add_upload(self, upload: ReceivedUpload) -> dict[str, Any]:
         """Validate an upload by reading it, then keep it: rename into place, insert its row.
 
@@ -218,7 +290,9 @@ class SequenceService:
         if len(name) > 200 or not all(ch.isprintable() for ch in name):
             raise ConfigError("name: at most 200 printable characters")
         try:
-            summary = self.reader.read(upload.path, selection, self.settings.max_inflated_bytes)
+            summary = self.reader.read(
+                upload.path, selection, self.settings.max_inflated_bytes, self.settings.max_points
+            )
         except StrepError as exc:
             raise type(exc)(_clean(str(exc), upload.path, upload.filename)) from None
         seq_id = new_id("seq")
@@ -273,6 +347,7 @@ class SequenceService:
             (self.extract_dir / part).mkdir(parents=True)
 
     def close(self) -> None:
+        self._reads.shutdown(wait=False, cancel_futures=True)  # the files of cancelled reads: swept at start-up
         self.reader.close()
 
 

@@ -7,6 +7,7 @@ the limit, without reading the rest.
 
 from __future__ import annotations
 
+import asyncio
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, TYPE_CHECKING
@@ -36,10 +37,11 @@ TEXT_FIELDS = ("frames", "name")
 class UploadError(Exception):
     """A malformed or oversized upload request (not a problem of the file's content)."""
 
-    def __init__(self, status_code: int, detail: str) -> None:
+    def __init__(self, status_code: int, detail: str, headers: dict[str, str] | None = None) -> None:
         super().__init__(detail)
         self.status_code = status_code
         self.detail = detail
+        self.headers = headers
 
 
 def upload_format(filename: str) -> tuple[str, str]:
@@ -214,6 +216,7 @@ async def receive_upload(request: Request, tmp_dir: Path, token: str, *, max_byt
         async for chunk in request.stream():
             if chunk:
                 mp.write(chunk)
+                await asyncio.sleep(0)  # a fast client's body must not hold the event loop between chunks
         mp.finalize()
         if not parser.ended:
             raise UploadError(400, "the multipart body is truncated (no closing boundary)")

@@ -111,10 +111,18 @@ class PipeSink:
             self.broken = True  # the service is gone; the parent watch ends this process
 
 
-def load_source(source: str, selection: str | None, max_extract_bytes: int, extract_dir: str | None = None) -> Any:
+def load_source(
+    source: str,
+    selection: str | None,
+    max_extract_bytes: int,
+    extract_dir: str | None = None,
+    max_points: int | None = None,
+) -> Any:
     """The `Sequence` behind a job's or an upload's source (``sample:NAME`` or a stored file).
 
-    A ``.zip`` is extracted under ``extract_dir`` (a folder the service sweeps), if given.
+    A stored file is read within the service's limits (bytes inflated, points; see
+    `strep_core.io.limits`). A ``.zip`` is extracted under ``extract_dir`` (a folder the
+    service sweeps), if given.
     """
     from strep_core.pipeline import load_input
 
@@ -124,7 +132,10 @@ def load_source(source: str, selection: str | None, max_extract_bytes: int, extr
 
     if extract_dir is not None:
         Path(extract_dir).mkdir(parents=True, exist_ok=True)
-    return load_sequence(source, frames=selection, max_extract_bytes=max_extract_bytes, extract_dir=extract_dir)
+    limits: dict[str, Any] = {"max_extract_bytes": max_extract_bytes}
+    if max_points is not None:
+        limits["max_points"] = max_points
+    return load_sequence(source, frames=selection, extract_dir=extract_dir, **limits)
 
 
 def open_recorder(path: Path, job_id: str, seq: Any, config: Any) -> Any:
@@ -196,7 +207,13 @@ def run_job(spec: dict[str, Any], conn: multiprocessing.connection.Connection, c
             config = RunConfig.model_validate_json(spec["config"])
             if config.threads is None:
                 config = config.model_copy(update={"threads": spec["threads"]})
-            seq = load_source(spec["source"], spec.get("selection"), spec["max_extract_bytes"], spec.get("extract_dir"))
+            seq = load_source(
+                spec["source"],
+                spec.get("selection"),
+                spec["max_extract_bytes"],
+                spec.get("extract_dir"),
+                spec.get("max_points"),
+            )
             if tmp_dir.exists():
                 shutil.rmtree(tmp_dir)
             tmp_dir.mkdir(parents=True)
@@ -242,7 +259,8 @@ def summarize(seq: Any) -> dict[str, Any]:
 
 
 def reader_loop(conn: multiprocessing.connection.Connection, plugins: list[str], nice: int = 0) -> None:
-    """Serve read requests ``(path, selection, max_extract_bytes, extract_dir)`` until the pipe closes.
+    """Serve read requests ``(path, selection, max_extract_bytes, extract_dir, max_points)`` until
+    the pipe closes.
 
     Replies ``("ok", summary)`` or ``("error", error class name, message)``.
     """
@@ -254,11 +272,11 @@ def reader_loop(conn: multiprocessing.connection.Connection, plugins: list[str],
 
     while True:
         try:
-            path, selection, max_bytes, extract_dir = conn.recv()
+            path, selection, max_bytes, extract_dir, max_points = conn.recv()
         except (EOFError, OSError):
             return
         try:
-            reply: tuple[Any, ...] = ("ok", summarize(load_source(path, selection, max_bytes, extract_dir)))
+            reply: tuple[Any, ...] = ("ok", summarize(load_source(path, selection, max_bytes, extract_dir, max_points)))
         except StrepError as exc:
             reply = ("error", type(exc).__name__, str(exc))
         except MemoryError:

@@ -8,6 +8,10 @@
 * a folder of ``*.ply`` / ``*.pcd`` -> `read_folder`
 * ``*.zip`` of any of the above -> extracted safely (`extract_zip`), then dispatched
 
+Each call of `load_sequence` reads within one `ReadBudget` (`strep_core.io.limits`): the bytes
+inflated by every container and compressed stream it opens, and the points its readers
+build, are charged while they are read; past the budget the read stops with `FormatError`.
+
 `FORMATS` describes them for documentation and the CLI. Open3D is imported only by the
 readers that need it (``folder``, ``conf``); ``sample:NAME`` sources are resolved by
 `strep_core.samples` before `load_sequence` is called.
@@ -28,6 +32,7 @@ from strep_core.io.carmen import read_carmen
 from strep_core.io.deepmapping import read_deepmapping
 from strep_core.io.depth import read_depth_folder, read_intrinsics
 from strep_core.io.folder import read_conf, read_folder
+from strep_core.io.limits import DEFAULT_MAX_INFLATED_BYTES, DEFAULT_MAX_POINTS, ReadBudget
 from strep_core.io.npz import read_npz, write_npz
 from strep_core.io.poses import read_kitti, read_poses, read_tum
 from strep_core.io.writers import write_json, write_ply, write_tum
@@ -35,8 +40,10 @@ from strep_core.sequence import FrameSelection, Sequence
 
 __all__ = [
     "DEFAULT_MAX_EXTRACT_BYTES",
+    "DEFAULT_MAX_POINTS",
     "FORMATS",
     "FormatInfo",
+    "ReadBudget",
     "detect_format",
     "extract_zip",
     "load_sequence",
@@ -56,7 +63,7 @@ __all__ = [
     "write_tum",
 ]
 
-DEFAULT_MAX_EXTRACT_BYTES = 2 * 1024**3  # 2 GiB: the most a .zip may inflate to
+DEFAULT_MAX_EXTRACT_BYTES = DEFAULT_MAX_INFLATED_BYTES  # the most one read may inflate to
 
 
 class FormatInfo(NamedTuple):
@@ -149,17 +156,24 @@ def _check_member(info: zipfile.ZipInfo, archive: Path) -> PurePosixPath:
     return rel
 
 
-def extract_zip(archive: str | Path, dest: str | Path, *, max_bytes: int = DEFAULT_MAX_EXTRACT_BYTES) -> Path:
+def extract_zip(
+    archive: str | Path,
+    dest: str | Path,
+    *,
+    max_bytes: int = DEFAULT_MAX_EXTRACT_BYTES,
+    budget: ReadBudget | None = None,
+) -> Path:
     """Extract ``archive`` into the folder ``dest`` safely.
 
     Entries with absolute paths, ``..`` components or symbolic links are refused, and the
-    extraction stops once more than ``max_bytes`` bytes have been written (whatever sizes
-    the archive declares). Returns ``dest``.
+    extraction stops once more than ``max_bytes`` bytes (or what ``budget`` has left) have
+    been written, whatever sizes the archive declares. Returns ``dest``.
 
     Raises:
         FormatError: not a zip file, an unsafe entry, or too much data.
     """
     archive, dest = Path(archive), Path(dest)
+    budget = budget or ReadBudget(max_inflated_bytes=max_bytes)
     try:
         zf = zipfile.ZipFile(archive)
     except (zipfile.BadZipFile, OSError) as exc:
@@ -168,9 +182,8 @@ def extract_zip(archive: str | Path, dest: str | Path, *, max_bytes: int = DEFAU
         infos = zf.infolist()
         members = [(info, _check_member(info, archive)) for info in infos]
         declared = sum(info.file_size for info in infos)
-        if declared > max_bytes:
-            raise FormatError(f"{archive}: inflates to {declared} bytes, over the limit of {max_bytes}")
-        written = 0
+        if budget.inflated + declared > budget.max_inflated_bytes:
+            raise FormatError(f"{archive}: inflates to {declared} bytes, over the limit of {budget.max_inflated_bytes}")
         for info, rel in members:
             target = dest.joinpath(*rel.parts)
             if info.is_dir():
@@ -180,9 +193,7 @@ def extract_zip(archive: str | Path, dest: str | Path, *, max_bytes: int = DEFAU
             try:
                 with zf.open(info) as src, open(target, "wb") as out:
                     while chunk := src.read(1 << 20):
-                        written += len(chunk)
-                        if written > max_bytes:
-                            raise FormatError(f"{archive}: inflates to more than the limit of {max_bytes} bytes")
+                        budget.bytes_over(len(chunk), str(archive))
                         out.write(chunk)
             except (zipfile.BadZipFile, OSError, EOFError, NotImplementedError) as exc:
                 raise FormatError(f"{archive}: cannot extract {info.filename!r} ({exc})") from exc
@@ -206,6 +217,7 @@ def load_sequence(
     *,
     frames: str | FrameSelection | None = None,
     max_extract_bytes: int = DEFAULT_MAX_EXTRACT_BYTES,
+    max_points: int = DEFAULT_MAX_POINTS,
     extract_dir: str | Path | None = None,
     **options: Any,
 ) -> Sequence:
@@ -215,7 +227,10 @@ def load_sequence(
         source: a file or folder; a ``.zip`` is extracted to a temporary folder (removed
             afterwards) and its content dispatched in turn.
         frames: ``start:stop[:step]``; original indices are kept in ``Sequence.indices``.
-        max_extract_bytes: the most a ``.zip`` may inflate to (default 2 GiB).
+        max_extract_bytes: the most the read may inflate, all containers and compressed
+            streams together (``.zip``, ``.npz``, gzip, ``.tar``; default 8 GiB).
+        max_points: the most points the read may build, before any frame selection
+            (default 250 million).
         extract_dir: the folder (existing) in which a ``.zip`` is extracted, in a ``strep-zip-*``
             folder of its own; None: the system's temporary folder. A service gives one that it
             sweeps at start-up, so a reader killed mid-extraction leaves nothing for good.
@@ -228,9 +243,10 @@ def load_sequence(
     """
     path = Path(source)
     fmt = detect_format(path)
+    budget = ReadBudget(max_inflated_bytes=max_extract_bytes, max_points=max_points)
     if fmt == "zip":
         with tempfile.TemporaryDirectory(prefix="strep-zip-", dir=extract_dir) as tmp:
-            extract_zip(path, tmp, max_bytes=max_extract_bytes)
+            extract_zip(path, tmp, budget=budget)
             inner = _content_root(Path(tmp))
             if inner.is_file() and inner.name.lower().endswith(".zip"):
                 raise FormatError(f"{path}: a zip inside a zip is not supported")
@@ -240,19 +256,24 @@ def load_sequence(
                 raise FormatError(
                     f"{path}: the archive's content has an unknown format; expected one of {_expected()}"
                 ) from exc
-            seq = _read(inner_fmt, inner, frames, options)
+            seq = _read(inner_fmt, inner, frames, options, budget)
             seq.meta = {**seq.meta, "source": str(path), "archive_member": str(inner.relative_to(tmp))}
             return seq
-    return _read(fmt, path, frames, options)
+    return _read(fmt, path, frames, options, budget)
 
 
-def _read(fmt: str, path: Path, frames: str | FrameSelection | None, options: dict[str, Any]) -> Sequence:
+def _read(
+    fmt: str, path: Path, frames: str | FrameSelection | None, options: dict[str, Any], budget: ReadBudget
+) -> Sequence:
     reader = _READERS[fmt]
-    accepted = set(inspect.signature(reader).parameters) - {"path", "frames"}
+    accepted = set(inspect.signature(reader).parameters) - {"path", "frames", "budget"}
     unknown = sorted(set(options) - accepted)
     if unknown:
         raise ConfigError(
             f"{path}: option(s) {', '.join(unknown)} do not apply to the {fmt} format "
             f"(it takes: {', '.join(sorted(accepted)) or 'none'})"
         )
-    return reader(path, frames=frames, **options)
+    seq = reader(path, frames=frames, budget=budget, **options)
+    if seq.num_points > budget.max_points:  # every reader charges as it reads; this is the backstop
+        raise FormatError(f"{path}: holds {seq.num_points} points, over the limit of {budget.max_points}")
+    return seq

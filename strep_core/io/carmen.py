@@ -21,32 +21,41 @@ continuously and do not pile up on one value).
 
 from __future__ import annotations
 
-import gzip
+import io
+import lzma
 import zlib
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
 from strep_core import geometry as g
 from strep_core.errors import FormatError, SequenceError
+from strep_core.io.limits import ReadBudget, open_decompressed
 from strep_core.sequence import FrameSelection, Sequence
 
 __all__ = ["DEFAULT_MAX_RANGE", "SENTINEL_SHARE", "read_carmen"]
 
 DEFAULT_MAX_RANGE = 80.0  # metres: SICK LMS maximum; readings at or beyond mean no return
 SENTINEL_SHARE = 1e-3  # a log maximum repeated in >= this share of readings is a no-return code
+MAX_LINE_CHARS = 1 << 20  # a FLASER line of thousands of beams is some 10 kB
 
 
-def _open_text(path: Path) -> list[str]:
+def _lines(path: Path, budget: ReadBudget) -> Iterator[tuple[int, str]]:
+    """``(line number, line)`` of the log, streamed (gunzipped when it is gzip, whatever its
+    name), every byte charged to ``budget``; a line longer than `MAX_LINE_CHARS` is refused."""
+    lineno = 0
     try:
-        raw = path.read_bytes()
-        if raw[:2] == b"\x1f\x8b":
-            raw = gzip.decompress(raw)
-        return raw.decode("utf-8").splitlines()
-    except (OSError, EOFError, zlib.error) as exc:
+        with io.TextIOWrapper(open_decompressed(path, budget), encoding="utf-8") as text:
+            while line := text.readline(MAX_LINE_CHARS + 1):
+                lineno += 1
+                if len(line) > MAX_LINE_CHARS:
+                    raise FormatError(f"{path}:{lineno}: a line longer than {MAX_LINE_CHARS} characters")
+                yield lineno, line
+    except (OSError, EOFError, zlib.error, lzma.LZMAError) as exc:
         raise FormatError(f"{path}: cannot read CARMEN log ({exc})") from exc
     except UnicodeDecodeError as exc:
-        raise FormatError(f"{path}: not a text CARMEN log ({exc.reason} at byte {exc.start})") from exc
+        raise FormatError(f"{path}: not a text CARMEN log ({exc.reason} near line {lineno + 1})") from exc
 
 
 def _parse_flaser(tokens: list[str], where: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -75,6 +84,7 @@ def read_carmen(
     *,
     frames: str | FrameSelection | None = None,
     max_range: float | None = None,
+    budget: ReadBudget | None = None,
 ) -> Sequence:
     """Read the ``FLASER`` scans of a CARMEN log as a 2D sequence in metres.
 
@@ -83,6 +93,8 @@ def read_carmen(
         frames: ``start:stop[:step]`` over the scans; original indices are kept.
         max_range: ranges at or beyond this (metres) are dropped; default: see the module
             docstring (80 m, or the log's repeated maximum when smaller).
+        budget: the bytes the log may inflate to and the range readings it may hold
+            (default: the library's limits).
 
     Returns:
         A `Sequence` with ``K`` frames ``(N_i, 2)`` in the laser frame (metres), ``poses``
@@ -96,11 +108,13 @@ def read_carmen(
     path = Path(path)
     if not path.is_file():
         raise FormatError(f"{path}: no such CARMEN log")
+    budget = budget or ReadBudget()
     scans = []
-    for lineno, line in enumerate(_open_text(path), 1):
+    for lineno, line in _lines(path, budget):
         tokens = line.split()
         if tokens and tokens[0] == "FLASER":
             scans.append(_parse_flaser(tokens, f"{path}:{lineno}"))
+            budget.take_points(len(scans[-1][0]), f"{path}:{lineno}")
     if not scans:
         raise FormatError(f"{path}: no FLASER lines (not a CARMEN laser log?)")
 

@@ -32,6 +32,7 @@ import numpy as np
 
 from strep_core.errors import FormatError, SequenceError
 from strep_core.io.folder import natural_key
+from strep_core.io.limits import ReadBudget
 from strep_core.io.poses import associate, read_tum
 from strep_core.sequence import FrameSelection, Sequence
 
@@ -117,8 +118,9 @@ def _stem(path: Path) -> str:
     return path.name.removesuffix(".png").removesuffix(".depth")
 
 
-def _load_depth(path: Path) -> np.ndarray:
-    """``(H, W)`` uint16 raw depth of a 16-bit PNG."""
+def _load_depth(path: Path, budget: ReadBudget, stride: int) -> np.ndarray:
+    """``(H, W)`` uint16 raw depth of a 16-bit PNG; its decoded size and the points its stride
+    keeps are charged to ``budget`` before it is decoded."""
     from PIL import Image, UnidentifiedImageError
 
     try:
@@ -127,6 +129,9 @@ def _load_depth(path: Path) -> np.ndarray:
                 raise FormatError(f"{path}: depth image is {im.format}, not PNG")
             if im.mode not in ("I;16", "I;16B", "I;16L", "I"):
                 raise FormatError(f"{path}: depth PNG has mode {im.mode}; expected 16-bit grayscale")
+            w, h = im.size
+            budget.bytes_over(4 * w * h, str(path))
+            budget.take_points(-(-w // stride) * -(-h // stride), str(path))
             arr = np.asarray(im)
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
         raise FormatError(f"{path}: not a readable PNG depth image ({exc})") from exc
@@ -232,6 +237,7 @@ def read_depth_folder(
     depth_scale: float = 1000.0,
     max_depth: float | None = None,
     intrinsics: Intrinsics | Seq[float] | np.ndarray | Mapping[str, float] | None = None,
+    budget: ReadBudget | None = None,
 ) -> Sequence:
     """Read a folder of 16-bit depth PNGs as a 3D sequence in metres (camera frame).
 
@@ -245,6 +251,8 @@ def read_depth_folder(
         intrinsics: ``(fx, fy, cx, cy)`` in pixels, a 3 x 3 K, or a mapping with those
             keys; default: read from ``camera-intrinsics.txt``, ``intrinsics.txt`` or
             ``intrinsics.json`` in the folder.
+        budget: the bytes the images may decode to and the points their strides keep
+            (default: the library's limits).
 
     Returns:
         A `Sequence` of ``(N_i, 3)`` frames (x right, y down, z forward; metres), with
@@ -279,9 +287,10 @@ def read_depth_folder(
     color_files = _color_files(path, files, layout)
     use_color = all(color_files[i] is not None for i in sel)
 
+    budget = budget or ReadBudget()
     pts, cols = [], []
     for i in sel:
-        raw = _load_depth(files[i])
+        raw = _load_depth(files[i], budget, stride)
         h, w = raw.shape
         rows, cols_ = np.mgrid[0:h:stride, 0:w:stride]
         d = raw[rows, cols_]

@@ -23,6 +23,7 @@ from typing import NamedTuple
 import numpy as np
 
 from strep_core.errors import FormatError, SequenceError
+from strep_core.io.limits import ReadBudget, declared_cloud_points
 from strep_core.io.poses import PoseFormat, associate, find_pose_file, read_poses
 from strep_core.sequence import FrameSelection, Sequence, Unit
 
@@ -54,16 +55,25 @@ class Cloud(NamedTuple):
     dropped: int
 
 
-def read_point_cloud(path: Path) -> Cloud:
+def read_point_cloud(path: Path, budget: ReadBudget | None = None) -> Cloud:
     """Read one PLY/PCD file with Open3D; non-finite points are dropped.
 
+    With a ``budget``, the point count the file's header declares is checked against it before
+    Open3D reads (and inflates) the file, and the points read are charged to it.
+
     Raises:
-        FormatError: Open3D cannot read the file or finds no points in it.
+        FormatError: Open3D cannot read the file or finds no points in it, or it declares
+            more points than the budget has left.
     """
     from strep_core._open3d import o3d
 
     if not path.is_file():
         raise FormatError(f"{path}: no such point-cloud file")
+    if budget is not None:
+        with open(path, "rb") as f:
+            declared = declared_cloud_points(f.read(64 * 1024))
+        if declared is not None:
+            budget.take_points(declared, str(path), declared=True)
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         cloud = o3d.io.read_point_cloud(path)
     pts = np.asarray(cloud.points, dtype=np.float64)
@@ -77,6 +87,8 @@ def read_point_cloud(path: Path) -> Cloud:
     if dropped:
         pts = pts[ok]
         colors = None if colors is None else colors[ok]
+    if budget is not None:
+        budget.take_points(len(pts), str(path))
     return Cloud(pts, colors, dropped)
 
 
@@ -108,6 +120,7 @@ def read_folder(
     poses: str | Path | None = None,
     poses_format: PoseFormat = "auto",
     unit: Unit = "m",
+    budget: ReadBudget | None = None,
 ) -> Sequence:
     """Read a folder of ``.ply`` / ``.pcd`` frames as a 3D sequence.
 
@@ -120,6 +133,7 @@ def read_folder(
             ``*.kitti``).
         poses_format: ``"auto"`` (from the suffix or the numbers per line), ``"tum"`` or ``"kitti"``.
         unit: the unit of the coordinates (``"m"`` by default).
+        budget: the points the frames may hold (default: the library's limits).
 
     Returns:
         A `Sequence` of ``(N_i, 3)`` frames, with ``poses`` ``(K, 4, 4)`` when a pose file is
@@ -148,10 +162,11 @@ def read_folder(
         gt = all_poses[sel]
         pose_info = {"poses_file": str(poses_path), "poses_matched_by": matched}
 
+    budget = budget or ReadBudget()
     pts, cols = [], []
     dropped = 0
     for i in sel:
-        cloud = read_point_cloud(files[i])
+        cloud = read_point_cloud(files[i], budget)
         pts.append(cloud.points)
         cols.append(cloud.colors)
         dropped += cloud.dropped
@@ -216,6 +231,7 @@ def read_conf(
     *,
     frames: str | FrameSelection | None = None,
     voxel: float | None = None,
+    budget: ReadBudget | None = None,
 ) -> Sequence:
     """Read range scans listed in a Stanford ``.conf`` file (the Stanford bunny layout).
 
@@ -230,6 +246,8 @@ def read_conf(
         frames: ``start:stop[:step]`` over the bmesh lines, in file order.
         voxel: optional voxel size (the data's unit, metres for the bunny) for Open3D
             voxel down-sampling of every scan.
+        budget: the points the scans may hold, before down-sampling (default: the
+            library's limits).
 
     Returns:
         A `Sequence` of ``(N_i, 3)`` scans with ``poses`` ``(K, 4, 4)``, scan -> world.
@@ -255,9 +273,10 @@ def read_conf(
         scan = conf.parent / scans[i][0]
         if not scan.is_file():
             raise FormatError(f"{conf}: scan {scans[i][0]!r} listed in the file is missing ({scan})")
+    budget = budget or ReadBudget()
     pts = []
     for i in sel:
-        cloud = read_point_cloud(conf.parent / scans[i][0])
+        cloud = read_point_cloud(conf.parent / scans[i][0], budget)
         xyz = cloud.points
         if voxel is not None:
             from strep_core._open3d import o3d

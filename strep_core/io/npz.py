@@ -17,28 +17,79 @@ unit           str                          optional ``"px"`` or ``"m"`` (defaul
 name           str                          optional name
 ============== ============================ ==============================================
 
-Files are read with ``allow_pickle=False``: object arrays are refused.
+Object arrays are refused (no pickles). Arrays are read in chunks, each charged to the read's
+`strep_core.io.limits.ReadBudget`, after their headers' sizes and point counts are checked
+against it: a small file that would inflate past the budget is refused before it is
+inflated.
 """
 
 from __future__ import annotations
 
+import math
 import zipfile
 from pathlib import Path
 
 import numpy as np
 
 from strep_core.errors import FormatError, SequenceError
+from strep_core.io.limits import CHUNK, CountingReader, ReadBudget
 from strep_core.sequence import FrameSelection, Sequence
 
+POINT_KEYS = ("points", "frames")  # arrays of points: (..., D)
 
-def read_npz(path: str | Path, *, frames: str | FrameSelection | None = None) -> Sequence:
-    """Read a sequence from an ``.npz`` file (keys above)."""
-    path = Path(path)
+
+def _read_array(fobj: CountingReader, key: str, budget: ReadBudget, where: str) -> np.ndarray:
+    """One ``.npy`` member: its header checked against the budget, then its data read in chunks."""
+    version = np.lib.format.read_magic(fobj)
+    if version == (1, 0):
+        shape, fortran, dtype = np.lib.format.read_array_header_1_0(fobj)
+    elif version == (2, 0):
+        shape, fortran, dtype = np.lib.format.read_array_header_2_0(fobj)
+    else:
+        raise FormatError(f"{where}: unsupported .npy version {version}")
+    if dtype.hasobject:
+        raise FormatError(f"{where}: object arrays are refused")
+    count = math.prod(shape)
+    budget.bytes_over(count * dtype.itemsize, where, declared=True)
+    if key in POINT_KEYS and len(shape) >= 2:
+        budget.take_points(math.prod(shape[:-1]), where)  # before the points are read
+    flat = np.empty(count, dtype=dtype)
+    view = memoryview(flat.view(np.uint8)) if flat.nbytes else memoryview(b"")  # type: ignore[arg-type]
+    pos = 0
+    while pos < len(view):
+        got = fobj.readinto(view[pos : pos + CHUNK])
+        if not got:
+            raise FormatError(f"{where}: the array is truncated ({pos} of {len(view)} bytes)")
+        pos += got
+    return flat.reshape(shape[::-1]).T if fortran else flat.reshape(shape)
+
+
+def _read_arrays(path: Path, budget: ReadBudget) -> dict[str, np.ndarray]:
+    data: dict[str, np.ndarray] = {}
     try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        with zipfile.ZipFile(path) as zf:
+            for info in zf.infolist():
+                if info.is_dir() or not info.filename.endswith(".npy"):
+                    continue
+                key = info.filename[: -len(".npy")]
+                where = f"{path}:{info.filename}"
+                # unbuffered: a read-ahead would be charged on top of the declared size
+                with zf.open(info) as raw, CountingReader(raw, budget, where) as fobj:
+                    data[key] = _read_array(fobj, key, budget, where)
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, NotImplementedError) as exc:
+        if isinstance(exc, FormatError):
+            raise
         raise FormatError(f"{path}: not a readable .npz file ({exc})") from exc
+    return data
+
+
+def read_npz(
+    path: str | Path, *, frames: str | FrameSelection | None = None, budget: ReadBudget | None = None
+) -> Sequence:
+    """Read a sequence from an ``.npz`` file (keys above) within ``budget`` (default: the
+    library's limits)."""
+    path = Path(path)
+    data = _read_arrays(path, budget or ReadBudget())
     if "points" in data and "counts" in data:
         counts = np.asarray(data["counts"]).astype(np.int64)
         pts = np.asarray(data["points"])

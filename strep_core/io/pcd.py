@@ -58,8 +58,9 @@ def parse_pcd(data: bytes, *, name: str = "<pcd>") -> np.ndarray:
     if n < 0 or not (len(fields) == len(sizes) == len(types) == len(counts)):
         raise FormatError(f"{name}: inconsistent PCD header")
     if mode == "ascii":
-        text = data[pos:].decode("ascii", errors="replace").split()
         width = sum(counts)
+        # at most n * width tokens: a file longer than its header says costs no more memory
+        text = data[pos:].decode("ascii", errors="replace").split(None, n * width)
         if len(text) < n * width:
             raise FormatError(f"{name}: PCD has {len(text) // max(width, 1)} of {n} points")
         table = np.asarray(text[: n * width], dtype=np.float64).reshape(n, width)

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
+import asyncio
 import secrets
 
 from fastapi import APIRouter, HTTPException, Request, Response
-from fastapi.concurrency import run_in_threadpool
 
 from app.api.deps import ServiceDep
 from app.models import ErrorPublic, SequencePublic, SequencesPublic
@@ -53,18 +53,24 @@ def list_sequences(service: ServiceDep) -> SequencesPublic:
     status_code=201,
     response_model=SequencePublic,
     summary="Upload a sequence",
-    description="Stream a file in any supported format; it is read once to validate it before it is kept.",
+    description="Stream a file in any supported format; it is read once to validate it before it is kept. "
+    "Uploads are read one at a time; while `max_pending_uploads` are being received or read, one more "
+    "gets 429 with a Retry-After header before its body is read.",
     openapi_extra=UPLOAD_BODY,
-    responses=_errors(400, 413, 415, 422),
+    responses=_errors(400, 413, 415, 422, 429),
 )
 async def upload_sequence(request: Request, service: ServiceDep) -> SequencePublic:
-    upload = await receive_upload(
-        request, service.sequences.tmp_dir, secrets.token_hex(8), max_bytes=service.settings.max_upload_bytes
-    )
+    slot = service.sequences.reserve_upload()  # 429 when full, before the body is read
     try:
-        row = await run_in_threadpool(service.sequences.add_upload, upload)
-    finally:
-        upload.path.unlink(missing_ok=True)
+        upload = await receive_upload(
+            request, service.sequences.tmp_dir, secrets.token_hex(8), max_bytes=service.settings.max_upload_bytes
+        )
+        future = service.sequences.submit_upload(upload, slot)  # the file and the slot are the queue's now
+    except BaseException:
+        slot.release()
+        raise
+    # waits on the event loop, holding no thread; a client that goes away leaves the read to finish
+    row = await asyncio.shield(asyncio.wrap_future(future))
     return SequencePublic.model_validate(row)
 
 
