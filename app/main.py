@@ -74,7 +74,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         )
     app.include_router(api_router)
     _mount_page(app)
-    _document_errors(app)
+    _document_errors(app, token_required=settings.api_token is not None)
     return app
 
 
@@ -100,8 +100,9 @@ def _open_service(settings: Settings) -> Service:
     return service
 
 
-def _document_errors(app: FastAPI) -> None:
-    """Describe 422 answers as they are: ``{"detail": str, "errors": [...]}``."""
+def _document_errors(app: FastAPI, *, token_required: bool) -> None:
+    """Describe 422 answers as they are: ``{"detail": str, "errors": [...]}``; without a token
+    the bearer scheme is optional (an empty security requirement beside it), as the service is."""
 
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:
@@ -119,6 +120,11 @@ def _document_errors(app: FastAPI) -> None:
                 },
             }
             schemas.pop("ValidationError", None)
+            if not token_required:
+                for path in schema.get("paths", {}).values():
+                    for op in path.values():
+                        if isinstance(op, dict) and op.get("security") and {} not in op["security"]:
+                            op["security"].append({})
             app.openapi_schema = schema
         return app.openapi_schema
 
