@@ -553,3 +553,19 @@ def test_slow_subscriber_keeps_only_the_latest_iterations() -> None:
 
     got = asyncio.run(scenario())
     assert [(e.kind, e.id) for e in got] == [("stage", 1000), ("iteration", 100), ("status", 101)]
+
+
+def test_comparison_workers_exit_by_themselves(client: TestClient) -> None:
+    """Each worker of a comparison exits on its own after its last message (exit code 0), not
+    killed by the service's reaper (-9)."""
+    body = {"sequence_id": "sample:sim2d-small", "config": {"frames": "0:12", "optim": {"iterations": 3}}}
+    r = client.post("/api/comparisons", json={**body, "methods": ["strep", "strep-nolink"]})
+    assert r.status_code == 201, r.text
+    for job in r.json()["jobs"]:
+        wait_job(client, job["id"], FINAL)
+        deadline = time.monotonic() + 60  # a guard against hangs: the reaper kills after 10 s
+        while (done := client.get(f"/api/jobs/{job['id']}").json()).get("exit_code") is None:
+            assert time.monotonic() < deadline, done
+            time.sleep(0.05)
+        assert done["status"] == "succeeded", done
+        assert done["exit_code"] == 0, done
