@@ -115,6 +115,15 @@ def pcd_bytes(points: np.ndarray) -> bytes:
     return format_pcd(points)
 
 
+def depth_png(size: int = 8) -> bytes:
+    """A 16-bit grayscale PNG depth image (millimetres)."""
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(np.full((size, size), 1000, dtype=np.uint16)).save(buf, format="PNG")
+    return buf.getvalue()
+
+
 def deepmapping_frames(frames: int = 4, points: int = 20) -> dict[str, bytes]:
     rng = np.random.default_rng(2)
     return {f"{i:03d}.pcd": pcd_bytes(rng.uniform(0, 1, size=(points, 2))) for i in range(frames)}
@@ -333,6 +342,23 @@ CASES: list[Bad] = [
         400,
         "a sequence needs at least 2 frames, got 1",
         upload("one.npz", npz_bytes(points=GOOD["points"][:32], counts=np.array([32]))),
+    ),
+    # ---- issue 17, item 12: messages that say what is wrong
+    Bad(
+        "npz with no frames",
+        "POST",
+        "/api/sequences",
+        400,
+        "a sequence needs at least 2 frames, got 0",
+        upload("none.npz", npz_bytes(points=np.zeros((0, 2)), counts=np.zeros(0, dtype=np.int64))),
+    ),
+    Bad(
+        "depth images at a zip's root without intrinsics",
+        "POST",
+        "/api/sequences",
+        400,
+        "depth.zip: no intrinsics file (camera-intrinsics.txt, intrinsics.txt, intrinsics.json); pass intrinsics",
+        upload("depth.zip", zip_bytes({f"depth/{i:03d}.png": depth_png() for i in range(3)})),
     ),
     # ---- issue 17, item 7: rigid poses, finite real points within range
     Bad(
@@ -567,9 +593,17 @@ CASES: list[Bad] = [
         "frame selection keeping one frame",
         "POST",
         "/api/sequences",
-        400,
-        "keeps 1 of 8 frames",
+        422,
+        "frame selection 0:1 keeps 1 of 8 frames; at least 2 are needed",
         upload("ok.npz", GOOD_NPZ, frames="0:1"),
+    ),
+    Bad(
+        "frame selection keeping no frame of a tar",
+        "POST",
+        "/api/sequences",
+        422,
+        "frame selection 9: keeps 0 of 4 frames",
+        upload("frames.tar", tar_bytes(deepmapping_frames()), frames="9:"),
     ),
     Bad(
         "name too long",
