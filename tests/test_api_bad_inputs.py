@@ -864,8 +864,15 @@ CASES: list[Bad] = [
         "GET",
         "/api/jobs/$JOB/events",
         400,
-        "Last-Event-ID must be a non-negative integer up to 4611686018427387904",
+        "Last-Event-ID must be a non-negative integer of at most 18 digits",
         {"headers": {"Last-Event-ID": str(2**64)}},
+    ),
+    Bad(
+        "after= of 19 digits",
+        "GET",
+        "/api/jobs/$JOB/events?after=1000000000000000000",
+        422,
+        "query.after: Input should be less than or equal to 999999999999999999",
     ),
     Bad(
         "Last-Event-ID of 5000 digits",
@@ -1249,3 +1256,39 @@ def test_result_files_need_the_token_and_name_themselves(tmp_path: Path) -> None
             got = client.get(f"{url}/files/{name}", headers=auth)
             assert got.status_code == 200, got.text
             assert got.headers["content-disposition"] == f'attachment; filename="{name}"'
+
+
+# ---- issue 17 item 12: the schema says what the service does -----------------------------------
+
+
+def test_error_answers_are_documented_as_json(env: tuple[TestClient, Path, dict[str, str]]) -> None:
+    """Every documented 4xx/5xx of every operation is JSON, the event stream's included (FastAPI
+    gave its 400 and 404 the stream's media type), and the stream's 404 is what it documents."""
+    client, _, ids = env
+    schema = client.get("/openapi.json").json()
+    for path, operations in schema["paths"].items():
+        for method, op in operations.items():
+            for status, answer in op["responses"].items():
+                if status[0] in "45":
+                    assert list(answer.get("content", {})) == ["application/json"], (method, path, status)
+    missing = client.get("/api/jobs/job_missing/events")
+    assert missing.status_code == 404
+    assert missing.headers["content-type"] == "application/json"
+    assert missing.json() == {"detail": "job 'job_missing' not found"}
+    header = schema["paths"]["/api/jobs/{job_id}/events"]["get"]["parameters"][2]
+    assert header["in"] == "header" and header["schema"]["type"] == "string"  # not nullable: no "null" sent
+    assert client.get(f"/api/jobs/{ids['$JOB']}/events", headers={"Last-Event-ID": "9" * 18}).status_code == 200
+
+
+def test_method_not_allowed_names_every_method(env: tuple[TestClient, Path, dict[str, str]]) -> None:
+    """A 405's Allow lists every method of the path, not only the first route's."""
+    client, _, _ = env
+    for method, url, allow in (
+        ("OPTIONS", "/api/sequences", "GET, POST"),
+        ("PUT", "/api/jobs/job_x", "DELETE, GET"),
+        ("PATCH", "/api/jobs", "GET, POST"),
+        ("POST", "/api/health", "GET"),
+    ):
+        r = client.request(method, url)
+        assert r.status_code == 405, (method, url, r.text)
+        assert r.headers["allow"] == allow, (method, url)
