@@ -1292,3 +1292,50 @@ def test_method_not_allowed_names_every_method(env: tuple[TestClient, Path, dict
         r = client.request(method, url)
         assert r.status_code == 405, (method, url, r.text)
         assert r.headers["allow"] == allow, (method, url)
+
+
+# ---- issue 17 item 13: nothing that can wait runs on the event loop ------------------------------
+
+
+def test_the_store_is_never_called_on_the_event_loop(tmp_path: Path) -> None:
+    """Every SQLite call of the routes runs on a worker thread, never on the event loop that
+    serves all requests and event streams (the latencies themselves are measured by
+    benchmarks/load_api.py, not asserted here)."""
+    import functools
+    import inspect
+
+    on_loop: list[str] = []
+
+    def off_the_loop(name: str, method: Any) -> Any:
+        @functools.wraps(method)
+        def wrapper(*args: Any, **kwargs: Any) -> Any:
+            try:
+                asyncio.get_running_loop()
+                on_loop.append(name)
+            except RuntimeError:  # no loop running in this thread
+                pass
+            return method(*args, **kwargs)
+
+        return wrapper
+
+    settings = Settings(data_dir=tmp_path, viewer_enabled=False)
+    with TestClient(create_app(settings)) as client:
+        store = client.app.state.service.store  # type: ignore[attr-defined]
+        for name, method in inspect.getmembers(store, inspect.ismethod):
+            if not name.startswith("_"):
+                setattr(store, name, off_the_loop(name, method))
+        seq = client.post("/api/sequences", files={"file": ("good.npz", GOOD_NPZ)})
+        assert seq.status_code == 201, seq.text
+        job = client.post("/api/jobs", json={"sequence_id": seq.json()["id"], "method": "identity"})
+        assert job.status_code == 201, job.text
+        url = f"/api/jobs/{job.json()['id']}"
+        events = client.get(f"{url}/events")  # follows the job live to its end, then returns
+        assert events.status_code == 200 and "succeeded" in events.text
+        for path in ("/api/health", "/api/methods", "/api/sequences", "/api/jobs", url, f"{url}/events"):
+            assert client.get(path).status_code == 200, path
+        assert client.get(f"{url}/files/metrics.json").status_code == 200
+        cmp = client.post("/api/comparisons", json={"sequence_id": seq.json()["id"], "methods": ["identity"]})
+        assert cmp.status_code == 201, cmp.text
+        assert client.get(f"/api/comparisons/{cmp.json()['id']}").status_code == 200
+        assert client.delete(f"/api/sequences/{seq.json()['id']}").status_code in (204, 409)
+    assert on_loop == []
