@@ -1339,3 +1339,34 @@ def test_the_store_is_never_called_on_the_event_loop(tmp_path: Path) -> None:
         assert client.get(f"/api/comparisons/{cmp.json()['id']}").status_code == 200
         assert client.delete(f"/api/sequences/{seq.json()['id']}").status_code in (204, 409)
     assert on_loop == []
+
+
+def test_a_read_takes_at_most_one_thread(
+    env: tuple[TestClient, Path, dict[str, str]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The read routes hand at most one call to the thread pool (their store read): on a busy
+    machine every hop waits for a thread to be scheduled, and a plain ``def`` dependency or
+    route costs one or two each (a request took up to five before)."""
+    import anyio.to_thread
+
+    client, _, ids = env
+    hops: list[str] = []
+    run_sync = anyio.to_thread.run_sync
+
+    async def counted(func: Any, *args: Any, **kwargs: Any) -> Any:
+        hops.append(getattr(func, "__qualname__", None) or repr(func))
+        return await run_sync(func, *args, **kwargs)
+
+    monkeypatch.setattr(anyio.to_thread, "run_sync", counted)
+    for path, most in (
+        ("/api/health", 1),
+        ("/api/methods", 0),
+        ("/api/sequences", 1),
+        ("/api/sequences/$SEQ", 1),
+        ("/api/jobs?limit=20", 1),
+        ("/api/jobs/$JOB", 1),
+    ):
+        hops.clear()
+        r = client.get(substitute(path, ids))
+        assert r.status_code == 200, (path, r.text)
+        assert len(hops) <= most, (path, hops)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import AsyncIterable
 from typing import Annotated, Any
 
@@ -93,7 +94,7 @@ def create_job(body: JobCreate, service: ServiceDep) -> JobPublic:
 
 
 @router.get("", response_model=JobsPublic, summary="Jobs, newest first")
-def list_jobs(
+async def list_jobs(
     service: ServiceDep,
     status: JobStatus | None = None,
     sequence_id: Annotated[str | None, Query(max_length=200)] = None,
@@ -101,14 +102,21 @@ def list_jobs(
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
     offset: Annotated[int, Query(ge=0, le=2**62)] = 0,
 ) -> JobsPublic:
-    rows, count = service.store.list_jobs(
-        status=status, sequence_id=sequence_id, comparison_id=comparison_id, limit=limit, offset=offset
+    rows, count = await run_in_threadpool(
+        functools.partial(
+            service.store.list_jobs,
+            status=status,
+            sequence_id=sequence_id,
+            comparison_id=comparison_id,
+            limit=limit,
+            offset=offset,
+        )
     )
     return JobsPublic(data=[JobPublic.from_row(r) for r in rows], count=count)
 
 
 @router.get("/{job_id}", response_model=JobPublic, responses=_errors(404), summary="One job")
-def get_job(job: JobDep) -> JobPublic:
+async def get_job(job: JobDep) -> JobPublic:  # the row is read by JobDep, on a thread
     return JobPublic.from_row(job)
 
 
