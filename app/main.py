@@ -101,7 +101,9 @@ def _open_service(settings: Settings) -> Service:
 
 
 def _document_errors(app: FastAPI, *, token_required: bool) -> None:
-    """Describe 422 answers as they are: ``{"detail": str, "errors": [...]}``; without a token
+    """Describe 422 answers as they are: ``{"detail": str, "errors": [...]}``; error answers as
+    JSON on every route (FastAPI gives them the media type of a route's success, such as the
+    event stream's ``text/event-stream``); without a token
     the bearer scheme is optional (an empty security requirement beside it), as the service is."""
 
     def openapi() -> dict[str, Any]:
@@ -120,6 +122,12 @@ def _document_errors(app: FastAPI, *, token_required: bool) -> None:
                 },
             }
             schemas.pop("ValidationError", None)
+            for path in schema.get("paths", {}).values():  # errors are JSON, whatever a route's success is
+                for op in path.values():
+                    for status, answer in op.get("responses", {}).items() if isinstance(op, dict) else ():
+                        content = answer.get("content", {})
+                        if status[:1] in "45" and content and "application/json" not in content:
+                            answer["content"] = {"application/json": next(iter(content.values()))}
             if not token_required:
                 for path in schema.get("paths", {}).values():
                     for op in path.values():

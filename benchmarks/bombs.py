@@ -15,6 +15,11 @@ script measures a checkout before and after a change::
     python benchmarks/bombs.py                        # this checkout
     python benchmarks/bombs.py --max-inflated-mib 256 # a smaller budget
 
+``--body-mib N`` adds issue 17 item 3: a real server (``uvicorn --factory
+app.main:create_app`` with a token, viewer off) is sent an N MiB JSON body (300 in the issue)
+without the token; printed: the answer's status, the seconds until it came and the server's
+RSS before and after (``--body-mib 0`` skips it).
+
 Prints a table, then one JSON line.
 """
 
@@ -125,12 +130,78 @@ print(json.dumps({"outcome": outcome, "seconds": round(seconds, 2), "peak_rss_mi
 """
 
 
+def rss_mib(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return round(int(line.split()[1]) / 1024, 1)
+    return float("nan")
+
+
+def body_bomb(code_root: Path, mib: int) -> dict[str, object]:
+    """POST ``mib`` MiB of JSON without the token to a server that has one (item 3)."""
+    import os
+    import socket
+    import time
+
+    import httpx
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    with tempfile.TemporaryDirectory(prefix="strep-body-") as data_dir:
+        env = {**os.environ, "PYTHONPATH": str(code_root), "STREP_DATA_DIR": data_dir}
+        env.update(STREP_VIEWER_ENABLED="false", STREP_API_TOKEN="s3cret")
+        cmd = [sys.executable, "-m", "uvicorn", "--factory", "app.main:create_app", "--port", str(port)]
+        server = subprocess.Popen(cmd, cwd=code_root, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        base = f"http://127.0.0.1:{port}"
+        try:
+            deadline = time.monotonic() + 60
+            while True:
+                try:
+                    httpx.get(f"{base}/api/health", timeout=2)
+                    break
+                except httpx.TransportError:
+                    if time.monotonic() > deadline:
+                        raise RuntimeError("the server did not start") from None
+                    time.sleep(0.2)
+            before = rss_mib(server.pid)
+            chunk = b" " * (1 << 20)
+
+            def body():  # type: ignore[no-untyped-def]
+                yield b'{"sequence_id": "sample:sim2d-small", "method": "identity", "name": "'
+                for _ in range(mib):
+                    yield chunk
+                yield b'"}'
+
+            t = time.perf_counter()
+            try:
+                r = httpx.post(
+                    f"{base}/api/jobs", content=body(), headers={"Content-Type": "application/json"}, timeout=600
+                )
+                status: object = r.status_code
+            except httpx.TransportError as exc:  # the server may close the connection once it has answered
+                status = f"connection closed ({type(exc).__name__})"
+            seconds = round(time.perf_counter() - t, 2)
+            return {
+                "body_mib": mib,
+                "status": status,
+                "seconds": seconds,
+                "rss_mib_before": before,
+                "rss_mib_after": rss_mib(server.pid),
+            }
+        finally:
+            server.terminate()
+            server.wait(30)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--code-root", type=Path, default=REPO, help="checkout whose reader is measured")
     parser.add_argument("--max-inflated-mib", type=int, default=2048, help="the service's default: 2048")
     parser.add_argument("--max-points", type=int, default=20_000_000, help="the service's default: 20 million")
+    parser.add_argument("--body-mib", type=int, default=300, help="JSON body without the token (0: skip)")
     args = parser.parse_args()
+    body = body_bomb(args.code_root, args.body_mib) if args.body_mib else None
     rows = []
     with tempfile.TemporaryDirectory(prefix="strep-bombs-") as tmp:
         folder = Path(tmp)
@@ -154,7 +225,13 @@ def main() -> None:
             f"{r['file']:<12} {r['size_bytes']:>9} {r.get('seconds', '-'):>8} "
             f"{str(r.get('peak_rss_mib', '-')) + ' MiB':>9}  {r['outcome']}"
         )
-    print(json.dumps({"code_root": str(args.code_root), "max_inflated_mib": args.max_inflated_mib, "rows": rows}))
+    if body is not None:
+        print(
+            f"{body['body_mib']} MiB JSON body without the token: {body['status']} after {body['seconds']} s, "
+            f"server RSS {body['rss_mib_before']} -> {body['rss_mib_after']} MiB"
+        )
+    result = {"code_root": str(args.code_root), "max_inflated_mib": args.max_inflated_mib, "rows": rows, "body": body}
+    print(json.dumps(result))
 
 
 if __name__ == "__main__":

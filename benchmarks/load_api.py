@@ -14,7 +14,10 @@ Reports:
 Usage::
 
     python benchmarks/load_api.py [--duration 20] [--requests 800] [--clients 4] [--method icp]
-                                  [--sequence sample:sim2d-small] [--json results.json]
+                                  [--sequence sample:sim2d-small] [--viewer-clients 1] [--json results.json]
+
+The machine's load average (before and after the measurement) and the API process's own CPU
+use are printed beside the figures: on a shared machine they say what the latency means.
 """
 
 from __future__ import annotations
@@ -132,6 +135,33 @@ def client(run: Run, budget: itertools.count, limit: int, deadline: float, think
             time.sleep(think)
 
 
+def viewer_client(run: Run, port: int, received: list[int]) -> None:
+    """A 3D viewer tab: reads everything the viewer's websocket sends until the run stops."""
+    import viser
+    import websockets.exceptions
+    import websockets.sync.client as wsc
+
+    url = f"ws://127.0.0.1:{port}"
+    headers = {"Origin": f"http://127.0.0.1:{port}"}
+    with wsc.connect(url, subprotocols=[f"viser-v{viser.__version__}"], additional_headers=headers) as ws:  # type: ignore[list-item]
+        while not run.stop.is_set():
+            try:
+                received.append(len(ws.recv(timeout=0.5)))
+            except TimeoutError:
+                continue
+            except websockets.exceptions.ConnectionClosed:
+                return
+
+
+def process_cpu_seconds(pid: int) -> float | None:
+    """User + system CPU time of a process so far (Linux /proc), or None."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(") ", 1)[1].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def event_delays(run: Run) -> list[float]:
     """Arrival minus emission (ms) of every iteration event received."""
     with run.lock:
@@ -150,6 +180,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--method", help="method of the optimising jobs (default: strep if registered, else icp)")
     parser.add_argument("--sequence", default="sample:sim2d-small", help="sequence id to optimise")
     parser.add_argument("--iterations", type=int, default=100_000, help="optim.iterations for learned methods")
+    parser.add_argument("--viewer-clients", type=int, default=0, help="3D viewer tabs reading its websocket")
     parser.add_argument("--json", type=Path, help="write the figures here as JSON")
     args = parser.parse_args(argv)
 
@@ -184,10 +215,22 @@ def main(argv: list[str] | None = None) -> int:
                 raise RuntimeError("the server did not start; see " + str(tmp / "server.log"))
             time.sleep(0.1)
 
+        viewer_bytes: list[int] = []
+        if args.viewer_clients:
+            viewer_port = httpx.get(f"{run.url}/api/health", timeout=10).json()["viewer_port"]
+            if viewer_port is None:
+                raise RuntimeError("--viewer-clients: the server has no viewer (STREP_VIEWER_ENABLED=false?)")
+            for _ in range(args.viewer_clients):
+                viewer = threading.Thread(target=viewer_client, args=(run, viewer_port, viewer_bytes), daemon=True)
+                viewer.start()
+                run.threads.append(viewer)
         feed = threading.Thread(target=feeder, args=(run,), daemon=True)
         feed.start()
         if not run.two_running.wait(180):
             raise RuntimeError("two jobs never optimised at once")
+        load_before = os.getloadavg()
+        cpu_before = process_cpu_seconds(server.pid)
+        viewer_before = sum(viewer_bytes)
         started = time.monotonic()
         budget = itertools.count()
         clients = [
@@ -201,6 +244,9 @@ def main(argv: list[str] | None = None) -> int:
         for t in clients:
             t.join()
         measured = time.monotonic() - started
+        cpu_after = process_cpu_seconds(server.pid)
+        load_after = os.getloadavg()
+        viewer_mb = (sum(viewer_bytes) - viewer_before) / 1e6
         run.stop.set()
         feed.join()
         with httpx.Client(base_url=run.url, timeout=30) as c:
@@ -221,6 +267,14 @@ def main(argv: list[str] | None = None) -> int:
             "job_outcomes": {s: list(finished.values()).count(s) for s in sorted(set(finished.values()))},
             "seconds": round(measured, 1),
             "clients": args.clients,
+            "viewer_clients": args.viewer_clients,
+            "viewer_mb_received": round(viewer_mb, 2),
+            "cpus": os.cpu_count(),
+            "loadavg_before": [round(v, 2) for v in load_before],
+            "loadavg_after": [round(v, 2) for v in load_after],
+            "server_cpu_share": None
+            if cpu_before is None or cpu_after is None
+            else round((cpu_after - cpu_before) / measured, 3),
             "latency_ms": {
                 "all": percentiles(all_lat),
                 **{k: percentiles(v) for k, v in sorted(run.latencies.items())},
@@ -240,7 +294,11 @@ def main(argv: list[str] | None = None) -> int:
 
     print(
         f"{result['method']} on {result['sequence']}: {result['jobs_started']} jobs, {result['seconds']} s measured, "
-        f"{result['clients']} clients ({result['machine']})"
+        f"{result['clients']} clients, {result['viewer_clients']} viewer tabs ({result['machine']})"
+    )
+    print(
+        f"load average (1, 5, 15 min) before {result['loadavg_before']}, after {result['loadavg_after']}; "
+        f"API process CPU {result['server_cpu_share']} cores; viewer sent {result['viewer_mb_received']} MB"
     )
     print(f"{'':28s} {'n':>6s} {'p50 ms':>8s} {'p99 ms':>8s} {'max ms':>8s}")
     rows = [*((f"latency {k}", v) for k, v in result["latency_ms"].items()), ("event delay", result["event_delay_ms"])]

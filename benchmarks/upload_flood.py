@@ -93,12 +93,20 @@ def main() -> None:
         }
         cmd = [sys.executable, "-m", "uvicorn", "--factory", "app.main:create_app", "--port", str(port)]
         server = subprocess.Popen(cmd, cwd=args.code_root, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        load_before = os.getloadavg()
         try:
             result = flood(base, tar, npz, args.uploads)
         finally:
             server.terminate()
             server.wait(30)
-    result = {"code_root": str(args.code_root), "frames": args.frames, **result}
+    load = {"before": [round(v, 2) for v in load_before], "after": [round(v, 2) for v in os.getloadavg()]}
+    result = {
+        "code_root": str(args.code_root),
+        "frames": args.frames,
+        "cpus": os.cpu_count(),
+        "loadavg": load,
+        **result,
+    }
     report(result)
 
 
@@ -221,6 +229,8 @@ def flood(base: str, tar: bytes, npz: bytes, uploads: int) -> dict[str, object]:
 
 def report(r: dict[str, object]) -> None:
     print(f"code: {r['code_root']}  slow upload: {r['frames']} frames  run: {r['seconds']} s")
+    load: dict[str, list[float]] = r["loadavg"]  # type: ignore[assignment]
+    print(f"{r['cpus']} CPUs, load average (1, 5, 15 min) before {load['before']}, after {load['after']}")
     print(f"{'route':<14} {'calls':>6} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8}")
     for route, v in r["latency"].items():  # type: ignore[attr-defined]
         print(f"{route:<14} {v['count']:>6} {v['p50_ms']:>8} {v['p99_ms']:>8} {v['max_ms']:>8}")

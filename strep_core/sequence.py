@@ -8,7 +8,7 @@ from typing import Literal
 
 import numpy as np
 
-from strep_core.errors import SequenceError
+from strep_core.errors import ConfigError, SequenceError
 
 Unit = Literal["px", "m"]
 
@@ -16,7 +16,13 @@ MIN_POINTS = 3  # a frame needs at least this many points to be registered at al
 MAX_SELECTION_CHARS = 64  # a frame selection ``start:stop[:step]`` is never longer
 MAX_INDEX_DIGITS = 18  # each index of a selection fits an int64 (and int() never meets its digit limit)
 MAX_COORDINATE = 1e9  # |coordinate| of any point, origin or pose translation, in the sequence's unit
+MIN_FRAMES = 2  # a sequence (and a frame selection of one) has at least this many frames
 RIGID_TOLERANCE = 1e-2  # largest entry of R R^T - I accepted in a pose (7-Scenes' own poses are off by 1.4e-4)
+
+
+class FrameSelectionError(ConfigError, SequenceError):
+    """A frame selection that is malformed or keeps fewer than `MIN_FRAMES` frames: an invalid
+    option (a `ConfigError`, 422 in the API) about a sequence (still a `SequenceError`)."""
 
 
 @dataclass(frozen=True)
@@ -44,18 +50,32 @@ class FrameSelection:
             return cls()
         if len(text) > MAX_SELECTION_CHARS or not re.fullmatch(r"-?\d*:-?\d*(:-?\d*)?", text):
             shown = text if len(text) <= MAX_SELECTION_CHARS else text[:MAX_SELECTION_CHARS] + "..."
-            raise SequenceError(f"frame selection {shown!r} is not of the form start:stop[:step]")
+            raise FrameSelectionError(f"frame selection {shown!r} is not of the form start:stop[:step]")
         if any(len(p.lstrip("-")) > MAX_INDEX_DIGITS for p in text.split(":")):
-            raise SequenceError(f"frame selection {text!r}: indices have at most {MAX_INDEX_DIGITS} digits")
+            raise FrameSelectionError(f"frame selection {text!r}: indices have at most {MAX_INDEX_DIGITS} digits")
         parts = [int(p) if p else None for p in text.split(":")]
         parts += [None] * (3 - len(parts))
         if parts[2] is not None and parts[2] <= 0:
-            raise SequenceError(f"frame selection {text!r}: step must be positive")
+            raise FrameSelectionError(f"frame selection {text!r}: step must be positive")
         return cls(*parts)
 
     def indices(self, n: int) -> np.ndarray:
         """The selected indices among ``n`` input frames, as an int64 array."""
         return np.arange(n, dtype=np.int64)[slice(self.start, self.stop, self.step)]
+
+    def keep(self, n: int) -> np.ndarray:
+        """`indices` of a selection that must keep at least `MIN_FRAMES` of ``n`` frames.
+
+        Raises:
+            FrameSelectionError: a selection (not every frame) keeping fewer; a sequence that
+                has too few frames by itself is left to `Sequence.validate` to report.
+        """
+        idx = self.indices(n)
+        if len(idx) < MIN_FRAMES and len(idx) < n:
+            raise FrameSelectionError(
+                f"frame selection {self} keeps {len(idx)} of {n} frames; at least {MIN_FRAMES} are needed"
+            )
+        return idx
 
     def __str__(self) -> str:
         s = f"{'' if self.start is None else self.start}:{'' if self.stop is None else self.stop}"
@@ -132,8 +152,8 @@ class Sequence:
     def validate(self) -> None:
         """Raise `SequenceError` with a clear message if anything is malformed."""
         k = len(self.frames)
-        if k < 2:
-            raise SequenceError(f"a sequence needs at least 2 frames, got {k}")
+        if k < MIN_FRAMES:
+            raise SequenceError(f"a sequence needs at least {MIN_FRAMES} frames, got {k}")
         dims = set()
         for i, f in enumerate(self.frames):
             if f.ndim != 2 or f.shape[1] not in (2, 3):
@@ -176,9 +196,7 @@ class Sequence:
     def select(self, selection: str | FrameSelection | slice | None) -> Sequence:
         """A new sequence with the selected frames; original indices are kept."""
         sel = FrameSelection.parse(selection)
-        idx = sel.indices(len(self))
-        if len(idx) < 2:
-            raise SequenceError(f"frame selection {sel} keeps {len(idx)} of {len(self)} frames; at least 2 are needed")
+        idx = sel.keep(len(self))
         assert self.origins is not None and self.indices is not None
         return replace(
             self,

@@ -115,6 +115,15 @@ def pcd_bytes(points: np.ndarray) -> bytes:
     return format_pcd(points)
 
 
+def depth_png(size: int = 8) -> bytes:
+    """A 16-bit grayscale PNG depth image (millimetres)."""
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(np.full((size, size), 1000, dtype=np.uint16)).save(buf, format="PNG")
+    return buf.getvalue()
+
+
 def deepmapping_frames(frames: int = 4, points: int = 20) -> dict[str, bytes]:
     rng = np.random.default_rng(2)
     return {f"{i:03d}.pcd": pcd_bytes(rng.uniform(0, 1, size=(points, 2))) for i in range(frames)}
@@ -333,6 +342,23 @@ CASES: list[Bad] = [
         400,
         "a sequence needs at least 2 frames, got 1",
         upload("one.npz", npz_bytes(points=GOOD["points"][:32], counts=np.array([32]))),
+    ),
+    # ---- issue 17, item 12: messages that say what is wrong
+    Bad(
+        "npz with no frames",
+        "POST",
+        "/api/sequences",
+        400,
+        "a sequence needs at least 2 frames, got 0",
+        upload("none.npz", npz_bytes(points=np.zeros((0, 2)), counts=np.zeros(0, dtype=np.int64))),
+    ),
+    Bad(
+        "depth images at a zip's root without intrinsics",
+        "POST",
+        "/api/sequences",
+        400,
+        "depth.zip: no intrinsics file (camera-intrinsics.txt, intrinsics.txt, intrinsics.json); pass intrinsics",
+        upload("depth.zip", zip_bytes({f"depth/{i:03d}.png": depth_png() for i in range(3)})),
     ),
     # ---- issue 17, item 7: rigid poses, finite real points within range
     Bad(
@@ -567,9 +593,17 @@ CASES: list[Bad] = [
         "frame selection keeping one frame",
         "POST",
         "/api/sequences",
-        400,
-        "keeps 1 of 8 frames",
+        422,
+        "frame selection 0:1 keeps 1 of 8 frames; at least 2 are needed",
         upload("ok.npz", GOOD_NPZ, frames="0:1"),
+    ),
+    Bad(
+        "frame selection keeping no frame of a tar",
+        "POST",
+        "/api/sequences",
+        422,
+        "frame selection 9: keeps 0 of 4 frames",
+        upload("frames.tar", tar_bytes(deepmapping_frames()), frames="9:"),
     ),
     Bad(
         "name too long",
@@ -830,8 +864,15 @@ CASES: list[Bad] = [
         "GET",
         "/api/jobs/$JOB/events",
         400,
-        "Last-Event-ID must be a non-negative integer up to 4611686018427387904",
+        "Last-Event-ID must be a non-negative integer of at most 18 digits",
         {"headers": {"Last-Event-ID": str(2**64)}},
+    ),
+    Bad(
+        "after= of 19 digits",
+        "GET",
+        "/api/jobs/$JOB/events?after=1000000000000000000",
+        422,
+        "query.after: Input should be less than or equal to 999999999999999999",
     ),
     Bad(
         "Last-Event-ID of 5000 digits",
@@ -1215,3 +1256,117 @@ def test_result_files_need_the_token_and_name_themselves(tmp_path: Path) -> None
             got = client.get(f"{url}/files/{name}", headers=auth)
             assert got.status_code == 200, got.text
             assert got.headers["content-disposition"] == f'attachment; filename="{name}"'
+
+
+# ---- issue 17 item 12: the schema says what the service does -----------------------------------
+
+
+def test_error_answers_are_documented_as_json(env: tuple[TestClient, Path, dict[str, str]]) -> None:
+    """Every documented 4xx/5xx of every operation is JSON, the event stream's included (FastAPI
+    gave its 400 and 404 the stream's media type), and the stream's 404 is what it documents."""
+    client, _, ids = env
+    schema = client.get("/openapi.json").json()
+    for path, operations in schema["paths"].items():
+        for method, op in operations.items():
+            for status, answer in op["responses"].items():
+                if status[0] in "45":
+                    assert list(answer.get("content", {})) == ["application/json"], (method, path, status)
+    missing = client.get("/api/jobs/job_missing/events")
+    assert missing.status_code == 404
+    assert missing.headers["content-type"] == "application/json"
+    assert missing.json() == {"detail": "job 'job_missing' not found"}
+    header = schema["paths"]["/api/jobs/{job_id}/events"]["get"]["parameters"][2]
+    assert header["in"] == "header" and header["schema"]["type"] == "string"  # not nullable: no "null" sent
+    assert client.get(f"/api/jobs/{ids['$JOB']}/events", headers={"Last-Event-ID": "9" * 18}).status_code == 200
+
+
+def test_method_not_allowed_names_every_method(env: tuple[TestClient, Path, dict[str, str]]) -> None:
+    """A 405's Allow lists every method of the path, not only the first route's."""
+    client, _, _ = env
+    for method, url, allow in (
+        ("OPTIONS", "/api/sequences", "GET, POST"),
+        ("PUT", "/api/jobs/job_x", "DELETE, GET"),
+        ("PATCH", "/api/jobs", "GET, POST"),
+        ("POST", "/api/health", "GET"),
+    ):
+        r = client.request(method, url)
+        assert r.status_code == 405, (method, url, r.text)
+        assert r.headers["allow"] == allow, (method, url)
+
+
+# ---- issue 17 item 13: nothing that can wait runs on the event loop ------------------------------
+
+
+def test_the_store_is_never_called_on_the_event_loop(tmp_path: Path) -> None:
+    """Every SQLite call of the routes runs on a worker thread, never on the event loop that
+    serves all requests and event streams (the latencies themselves are measured by
+    benchmarks/load_api.py, not asserted here)."""
+    import functools
+    import inspect
+
+    on_loop: list[str] = []
+
+    def off_the_loop(name: str, method: Any) -> Any:
+        @functools.wraps(method)
+        def wrapper(*args: Any, **kwargs: Any) -> Any:
+            try:
+                asyncio.get_running_loop()
+                on_loop.append(name)
+            except RuntimeError:  # no loop running in this thread
+                pass
+            return method(*args, **kwargs)
+
+        return wrapper
+
+    settings = Settings(data_dir=tmp_path, viewer_enabled=False)
+    with TestClient(create_app(settings)) as client:
+        store = client.app.state.service.store  # type: ignore[attr-defined]
+        for name, method in inspect.getmembers(store, inspect.ismethod):
+            if not name.startswith("_"):
+                setattr(store, name, off_the_loop(name, method))
+        seq = client.post("/api/sequences", files={"file": ("good.npz", GOOD_NPZ)})
+        assert seq.status_code == 201, seq.text
+        job = client.post("/api/jobs", json={"sequence_id": seq.json()["id"], "method": "identity"})
+        assert job.status_code == 201, job.text
+        url = f"/api/jobs/{job.json()['id']}"
+        events = client.get(f"{url}/events")  # follows the job live to its end, then returns
+        assert events.status_code == 200 and "succeeded" in events.text
+        for path in ("/api/health", "/api/methods", "/api/sequences", "/api/jobs", url, f"{url}/events"):
+            assert client.get(path).status_code == 200, path
+        assert client.get(f"{url}/files/metrics.json").status_code == 200
+        cmp = client.post("/api/comparisons", json={"sequence_id": seq.json()["id"], "methods": ["identity"]})
+        assert cmp.status_code == 201, cmp.text
+        assert client.get(f"/api/comparisons/{cmp.json()['id']}").status_code == 200
+        assert client.delete(f"/api/sequences/{seq.json()['id']}").status_code in (204, 409)
+    assert on_loop == []
+
+
+def test_a_read_takes_at_most_one_thread(
+    env: tuple[TestClient, Path, dict[str, str]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The read routes hand at most one call to the thread pool (their store read): on a busy
+    machine every hop waits for a thread to be scheduled, and a plain ``def`` dependency or
+    route costs one or two each (a request took up to five before)."""
+    import anyio.to_thread
+
+    client, _, ids = env
+    hops: list[str] = []
+    run_sync = anyio.to_thread.run_sync
+
+    async def counted(func: Any, *args: Any, **kwargs: Any) -> Any:
+        hops.append(getattr(func, "__qualname__", None) or repr(func))
+        return await run_sync(func, *args, **kwargs)
+
+    monkeypatch.setattr(anyio.to_thread, "run_sync", counted)
+    for path, most in (
+        ("/api/health", 1),
+        ("/api/methods", 0),
+        ("/api/sequences", 1),
+        ("/api/sequences/$SEQ", 1),
+        ("/api/jobs?limit=20", 1),
+        ("/api/jobs/$JOB", 1),
+    ):
+        hops.clear()
+        r = client.get(substitute(path, ids))
+        assert r.status_code == 200, (path, r.text)
+        assert len(hops) <= most, (path, hops)

@@ -12,6 +12,8 @@ error                                     status meaning
 
 from __future__ import annotations
 
+import functools
+import re
 from collections.abc import Sequence
 from typing import Any
 
@@ -19,6 +21,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match, Route
 
 from app.services.uploads import UploadError
 from strep_core.errors import ConfigError, MethodError, StrepError
@@ -76,4 +79,32 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
         detail = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
-        return JSONResponse({"detail": detail}, status_code=exc.status_code, headers=getattr(exc, "headers", None))
+        headers = dict(getattr(exc, "headers", None) or {})
+        if exc.status_code == 405:  # Starlette names only the first route of the path that matched
+            headers["Allow"] = ", ".join(allowed_methods(request.app, request.scope))
+        return JSONResponse({"detail": detail}, status_code=exc.status_code, headers=headers or None)
+
+
+def allowed_methods(app: Any, scope: dict[str, Any]) -> list[str]:
+    """Every method the request's path answers, sorted (a 405's ``Allow``): the operations the
+    OpenAPI schema documents for it, else those of the app's own routes (the page, the docs)."""
+    path = scope.get("path", "")
+    methods: set[str] = set()
+    for template, operations in app.openapi().get("paths", {}).items():
+        if _path_regex(template).fullmatch(path):
+            methods |= {m.upper() for m in operations if m.upper() in HTTP_METHODS}
+    if not methods:
+        for route in app.router.routes:
+            if isinstance(route, Route) and route.methods and route.matches(scope)[0] != Match.NONE:
+                methods |= route.methods
+    return sorted(methods)
+
+
+HTTP_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS", "TRACE"})
+
+
+@functools.lru_cache(maxsize=256)
+def _path_regex(template: str) -> re.Pattern[str]:
+    """``/api/jobs/{job_id}`` as a regular expression (a parameter is one path segment)."""
+    parts = re.split(r"(\{[^/{}]+\})", template)
+    return re.compile("".join("[^/]+" if p.startswith("{") else re.escape(p) for p in parts))

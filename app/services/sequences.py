@@ -28,6 +28,7 @@ from app.services.uploads import ReceivedUpload, UploadError
 from app.services.worker import reader_loop
 from app.store import Store, now_iso
 from strep_core import errors as core_errors
+from strep_core import sequence as core_sequence
 from strep_core.errors import ConfigError, FormatError, SequenceError, StrepError
 from strep_core.sequence import FrameSelection
 
@@ -123,7 +124,7 @@ class ReaderProcess:
         if reply[0] == "ok":
             return dict(reply[1])
         _, cls_name, message = reply
-        cls = getattr(core_errors, cls_name, None)
+        cls = getattr(core_errors, cls_name, None) or getattr(core_sequence, cls_name, None)
         if not (isinstance(cls, type) and issubclass(cls, StrepError)):
             cls = FormatError
         raise cls(message)

@@ -20,6 +20,7 @@ readers that need it (``folder``, ``conf``); ``sample:NAME`` sources are resolve
 from __future__ import annotations
 
 import inspect
+import os
 import stat
 import tempfile
 import zipfile
@@ -27,7 +28,7 @@ from collections.abc import Callable
 from pathlib import Path, PurePosixPath
 from typing import Any, NamedTuple
 
-from strep_core.errors import ConfigError, FormatError
+from strep_core.errors import ConfigError, FormatError, StrepError
 from strep_core.io.carmen import read_carmen
 from strep_core.io.deepmapping import read_deepmapping
 from strep_core.io.depth import read_depth_folder, read_intrinsics
@@ -207,8 +208,8 @@ def _content_root(folder: Path) -> Path:
         entries = [p for p in folder.iterdir() if p.name not in ("__MACOSX", ".DS_Store")]
         if len(entries) != 1:
             return folder
-        if entries[0].is_file():
-            return entries[0]
+        if entries[0].is_file() or entries[0].name == "depth":  # depth/*.png: the folder holding it is the content
+            return entries[0] if entries[0].is_file() else folder
         folder = entries[0]
 
 
@@ -256,7 +257,11 @@ def load_sequence(
                 raise FormatError(
                     f"{path}: the archive's content has an unknown format; expected one of {_expected()}"
                 ) from exc
-            seq = _read(inner_fmt, inner, frames, options, budget)
+            try:
+                seq = _read(inner_fmt, inner, frames, options, budget)
+            except StrepError as exc:  # name the archive, not the temporary folder
+                text = str(exc).replace(f"{tmp}{os.sep}", f"{path}:").replace(tmp, str(path))
+                raise type(exc)(text) from exc
             seq.meta = {**seq.meta, "source": str(path), "archive_member": str(inner.relative_to(tmp))}
             return seq
     return _read(fmt, path, frames, options, budget)

@@ -129,7 +129,7 @@ def read_carmen(
             if np.count_nonzero(finite == top) >= max(2, SENTINEL_SHARE * finite.size) and top < limit:
                 limit, rule = top, "sentinel"
 
-    sel = FrameSelection.parse(frames).indices(len(scans))
+    sel = FrameSelection.parse(frames).keep(len(scans))
     pts, gt, odom = [], [], []
     for i in sel:
         r, pose, od = scans[i]

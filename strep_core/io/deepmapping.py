@@ -100,7 +100,7 @@ def read_deepmapping(
     order = sorted(members)
     if order != list(range(order[0], order[0] + len(order))):
         raise FormatError(f"{path}: frame numbers are not contiguous ({order[0]}..{order[-1]})")
-    sel = FrameSelection.parse(frames).indices(len(order))
+    sel = FrameSelection.parse(frames).keep(len(order))
     pts = []
     for i in sel:
         xyz = parse_pcd(members[order[i]], name=f"{path}:{order[i]:03d}.pcd")

@@ -282,7 +282,7 @@ def read_depth_folder(
     else:
         fx, fy, cx, cy = _as_intrinsics(intrinsics, f"{path}: intrinsics argument")
 
-    sel = FrameSelection.parse(frames).indices(len(files))
+    sel = FrameSelection.parse(frames).keep(len(files))
     poses, pose_source = _poses(path, files, layout, sel)
     color_files = _color_files(path, files, layout)
     use_color = all(color_files[i] is not None for i in sel)

@@ -150,7 +150,7 @@ def read_folder(
     files = list_frames(path)
     if not files:
         raise FormatError(f"{path}: no .ply or .pcd files in this folder")
-    sel = FrameSelection.parse(frames).indices(len(files))
+    sel = FrameSelection.parse(frames).keep(len(files))
 
     gt = None
     pose_info: dict[str, object] = {}
@@ -268,7 +268,7 @@ def read_conf(
     if voxel is not None and not voxel > 0:
         raise FormatError(f"{conf}: voxel must be positive, not {voxel}")
     scans = _parse_conf(conf)
-    sel = FrameSelection.parse(frames).indices(len(scans))
+    sel = FrameSelection.parse(frames).keep(len(scans))
     for i in sel:
         scan = conf.parent / scans[i][0]
         if not scan.is_file():

@@ -95,7 +95,7 @@ def read_npz(
         pts = np.asarray(data["points"])
         if counts.ndim != 1 or (counts < 0).any() or counts.sum() != len(pts):
             raise FormatError(f"{path}: 'counts' must be non-negative and sum to len(points) = {len(pts)}")
-        chunks = np.split(pts, np.cumsum(counts)[:-1])
+        chunks = np.split(pts, np.cumsum(counts)[:-1]) if len(counts) else []  # no counts: no frames
     elif "frames" in data:
         arr = np.asarray(data["frames"])
         if arr.ndim != 3:

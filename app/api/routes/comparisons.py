@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from fastapi import APIRouter, HTTPException
+from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 
 from app.api.deps import ServiceDep
@@ -72,8 +73,8 @@ def create_comparison(body: ComparisonCreate, service: ServiceDep) -> Comparison
 
 
 @router.get("/{comparison_id}", response_model=ComparisonPublic, responses=_errors(404), summary="One comparison")
-def get_comparison(comparison_id: str, service: ServiceDep) -> ComparisonPublic:
-    return comparison_public(service, comparison_id)
+async def get_comparison(comparison_id: str, service: ServiceDep) -> ComparisonPublic:
+    return await run_in_threadpool(comparison_public, service, comparison_id)
 
 
 @router.get(

@@ -28,6 +28,6 @@ async def health(service: ServiceDep) -> HealthPublic:
 
 
 @router.get("/methods", response_model=MethodsPublic, summary="Registration methods a job may use")
-def list_methods() -> MethodsPublic:
+async def list_methods() -> MethodsPublic:  # the registry in memory: no thread needed
     data = [MethodPublic(name=m.name, description=m.description, learned=m.learned) for m in available().values()]
     return MethodsPublic(data=data, count=len(data))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import AsyncIterable
 from typing import Annotated, Any
 
@@ -32,7 +33,9 @@ from strep_core.sequence import FrameSelection
 router = APIRouter(prefix="/jobs", tags=["jobs"])
 
 REPLAY_PAGE = 500
-MAX_EVENT_ID = 2**62  # event ids are SQLite integers (int64); ?after= has the same bound
+EVENT_ID_DIGITS = 18  # event ids are SQLite integers (int64): 18 digits always fit
+MAX_EVENT_ID = 10**EVENT_ID_DIGITS - 1  # ?after= has the same bound
+EVENT_ID_PATTERN = rf"^\s*[0-9]{{0,{EVENT_ID_DIGITS}}}\s*$"  # what Last-Event-ID accepts (blank: from the start)
 IDLE_CHECK_SECONDS = 5.0
 
 
@@ -91,7 +94,7 @@ def create_job(body: JobCreate, service: ServiceDep) -> JobPublic:
 
 
 @router.get("", response_model=JobsPublic, summary="Jobs, newest first")
-def list_jobs(
+async def list_jobs(
     service: ServiceDep,
     status: JobStatus | None = None,
     sequence_id: Annotated[str | None, Query(max_length=200)] = None,
@@ -99,14 +102,21 @@ def list_jobs(
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
     offset: Annotated[int, Query(ge=0, le=2**62)] = 0,
 ) -> JobsPublic:
-    rows, count = service.store.list_jobs(
-        status=status, sequence_id=sequence_id, comparison_id=comparison_id, limit=limit, offset=offset
+    rows, count = await run_in_threadpool(
+        functools.partial(
+            service.store.list_jobs,
+            status=status,
+            sequence_id=sequence_id,
+            comparison_id=comparison_id,
+            limit=limit,
+            offset=offset,
+        )
     )
     return JobsPublic(data=[JobPublic.from_row(r) for r in rows], count=count)
 
 
 @router.get("/{job_id}", response_model=JobPublic, responses=_errors(404), summary="One job")
-def get_job(job: JobDep) -> JobPublic:
+async def get_job(job: JobDep) -> JobPublic:  # the row is read by JobDep, on a thread
     return JobPublic.from_row(job)
 
 
@@ -136,16 +146,23 @@ def cancel_job(job: JobDep, service: ServiceDep, response: Response) -> JobPubli
 
 def event_cursor(
     last_event_id: Annotated[
-        str | None, Header(description="resume after this event id (sent by EventSource on reconnection)")
-    ] = None,
+        str,
+        Header(
+            description="resume after this event id (sent by EventSource on reconnection)",
+            # documented, checked below (a 400 that says what an event id is, rather than a 422)
+            json_schema_extra={"pattern": EVENT_ID_PATTERN},
+        ),
+    ] = "",
     after: Annotated[int | None, Query(ge=0, le=MAX_EVENT_ID, description="resume after this event id")] = None,
 ) -> int:
     cursor = after or 0
-    if last_event_id is not None and last_event_id.strip():
+    if last_event_id.strip():
         text = last_event_id.strip()
-        # digits only, at most 19 of them, before int(): no digit-limit ValueError, no id past SQLite's int64
-        if not (len(text) <= 19 and text.isascii() and text.isdigit()) or int(text) > MAX_EVENT_ID:
-            raise HTTPException(400, f"Last-Event-ID must be a non-negative integer up to {MAX_EVENT_ID} (an event id)")
+        # ASCII digits only, at most 18 of them, before int(): no digit-limit ValueError, no id past int64
+        if not (len(text) <= EVENT_ID_DIGITS and text.isascii() and text.isdigit()):
+            raise HTTPException(
+                400, f"Last-Event-ID must be a non-negative integer of at most {EVENT_ID_DIGITS} digits (an event id)"
+            )
         cursor = max(cursor, int(text))
     return cursor
 

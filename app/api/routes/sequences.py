@@ -6,6 +6,7 @@ import asyncio
 import secrets
 
 from fastapi import APIRouter, HTTPException, Request, Response
+from fastapi.concurrency import run_in_threadpool
 
 from app.api.deps import ServiceDep
 from app.models import ErrorPublic, SequencePublic, SequencesPublic
@@ -43,8 +44,8 @@ def _errors(*codes: int) -> dict[int | str, dict[str, object]]:
 
 
 @router.get("", response_model=SequencesPublic, summary="Uploaded and bundled sequences")
-def list_sequences(service: ServiceDep) -> SequencesPublic:
-    data = [SequencePublic.model_validate(s) for s in service.sequences.list()]
+async def list_sequences(service: ServiceDep) -> SequencesPublic:
+    data = [SequencePublic.model_validate(s) for s in await run_in_threadpool(service.sequences.list)]
     return SequencesPublic(data=data, count=len(data))
 
 
@@ -75,8 +76,8 @@ async def upload_sequence(request: Request, service: ServiceDep) -> SequencePubl
 
 
 @router.get("/{sequence_id}", response_model=SequencePublic, responses=_errors(404), summary="One sequence")
-def get_sequence(sequence_id: str, service: ServiceDep) -> SequencePublic:
-    seq = service.sequences.get(sequence_id)
+async def get_sequence(sequence_id: str, service: ServiceDep) -> SequencePublic:
+    seq = await run_in_threadpool(service.sequences.get, sequence_id)
     if seq is None:
         raise HTTPException(404, f"sequence {sequence_id!r} not found")
     return SequencePublic.model_validate(seq)
