@@ -62,7 +62,8 @@ class StageEvent(_Event):
 STAGE_LABELS = {
     "load": "loading the sequence",
     "init": "warm start",
-    "optimise": "optimising",
+    "prepare": "preparing the optimisation",  # (viewers: after the start event, before iteration 0)
+    "optimise": "optimising",  # (viewers: from the first iteration event after iteration 0)
     "write": "writing files",
 }
 

@@ -48,3 +48,19 @@ def test_favicon(client: TestClient) -> None:
     assert '<link rel="icon" href="/static/favicon.svg"' in page
     svg = Path(__file__).resolve().parents[1] / "static" / "favicon.svg"
     assert client.get("/static/favicon.svg").content == svg.read_bytes()
+
+
+def test_the_page_shows_the_service_defaults_and_sends_none() -> None:
+    """One default iteration count everywhere (before: the page sent 150, the CLI used 300): the
+    page's placeholders are the config's defaults, and it sends a count only when one is typed."""
+    from strep_core.config import RunConfig
+
+    root = Path(__file__).resolve().parents[1] / "static"
+    html = (root / "index.html").read_text()
+    shown = dict(re.findall(r'<option value="([a-z-]+)" data-iterations="(\d+)"', html))
+    expected = {start: RunConfig.build(start=start).optim.iterations for start in ("scratch", "pose-graph")}
+    assert {k: int(v) for k, v in shown.items()} == expected
+    assert re.search(r'<option value="scratch"[^>]* selected>', html)  # the first preset: from scratch
+    assert re.search(r'<input type="number" id="iterations"(?![^>]*value=)[^>]*>', html)  # empty by default
+    js = (root / "app.js").read_text()
+    assert "if (iterations != null) optim.iterations = iterations;" in js

@@ -527,6 +527,8 @@ class ViewerServer:
             self.stats.events += 1
             if isinstance(event, StartEvent):
                 job.method, job.total = event.method, event.total_iterations
+                if job.stage in (None, "load"):
+                    job.stage = "prepare"  # the optimiser sets up until its iteration 0
                 job.rev += 1
             elif isinstance(event, StageEvent):
                 job.stage = event.stage
