@@ -51,7 +51,7 @@ function fitCanvas(canvas) {
   return { ctx, W, H };
 }
 
-function drawChart(canvas, series, { log = false, empty = "waiting for iterations…" } = {}) {
+function drawChart(canvas, series, { log = false, empty = "waiting for iterations…", xFrom = null } = {}) {
   const { ctx, W, H } = fitCanvas(canvas);
   const R = 10, T = 10, B = 26;
   let L = 52;
@@ -64,7 +64,7 @@ function drawChart(canvas, series, { log = false, empty = "waiting for iteration
     return;
   }
   const tx = (y) => (log ? Math.log10(y) : y);
-  let x0 = Math.min(...pts.map((p) => p[0])), x1 = Math.max(...pts.map((p) => p[0]));
+  let x0 = Math.min(xFrom ?? Infinity, ...pts.map((p) => p[0])), x1 = Math.max(...pts.map((p) => p[0]));
   let y0 = Math.min(...pts.map((p) => tx(p[1]))), y1 = Math.max(...pts.map((p) => tx(p[1])));
   if (x1 === x0) x1 = x0 + 1;
   if (y1 === y0) { y0 -= 0.5; y1 += 0.5; }
@@ -103,8 +103,8 @@ function drawChart(canvas, series, { log = false, empty = "waiting for iteration
 function redraw() {
   const jobs = [...state.follow].map((id) => state.jobs.get(id)).filter(Boolean);
   const waiting = jobs.some((j) => j.status === "running") ? "waiting for the first iteration…" : "no iterations yet";
-  drawChart($("#loss-chart"), jobs.map((j) => ({ color: j.color, points: j.loss })), { log: true, empty: waiting });
-  drawChart($("#ate-chart"), jobs.map((j) => ({ color: j.color, points: j.ate })), { empty: waiting });
+  drawChart($("#loss-chart"), jobs.map((j) => ({ color: j.color, points: j.loss })), { log: true, empty: waiting, xFrom: 0 });
+  drawChart($("#ate-chart"), jobs.map((j) => ({ color: j.color, points: j.ate })), { empty: waiting, xFrom: 0 });
   const unit = jobs.map((j) => j.metrics?.unit || j.unit).find(Boolean);
   $("#ate-caption").textContent = unit ? `ATE (${unit}), from the starting poses (iteration 0)` : "ATE";
   $("#legend").innerHTML = jobs
