@@ -216,6 +216,8 @@ def run_job(spec: dict[str, Any], conn: multiprocessing.connection.Connection, c
                 spec.get("extract_dir"),
                 spec.get("max_points"),
             )
+            if spec.get("sequence_name"):  # an upload: its name, not its stored file's ("sequence")
+                seq.name = spec["sequence_name"]
             if tmp_dir.exists():
                 shutil.rmtree(tmp_dir)
             tmp_dir.mkdir(parents=True)
