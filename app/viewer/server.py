@@ -137,6 +137,7 @@ class _Job:
     chart_exponent: int = 0  # loss curves are drawn in units of 10**chart_exponent
     chart_pushed: float = -math.inf
     box: tuple[np.ndarray, np.ndarray] | None = None
+    shown_box: tuple[np.ndarray, np.ndarray] | None = None  # the estimated map as last pushed (framing)
     offset: np.ndarray = field(default_factory=lambda: np.zeros(3))
     rev: int = 0  # bumps when something besides the snapshot changes (result text, layout)
 
@@ -898,9 +899,9 @@ class ViewerServer:
         if not members:
             return
         box = None
-        for job in members:
-            lo, hi = self._box_of(job)
-            box = union_bbox(box, (lo + job.offset, hi + job.offset))
+        for job in members:  # the panels and whatever the estimates show beyond them
+            for lo, hi in (self._box_of(job), job.shown_box or self._box_of(job)):
+                box = union_bbox(box, (lo + job.offset, hi + job.offset))
         assert box is not None
         size = float(max(np.max(box[1] - box[0]), 1e-6))
         # clip planes scaled to the scene: viser's default far plane (1000) hides maps in pixels
@@ -953,8 +954,9 @@ class ViewerServer:
             axes.batched_wxyzs = rotations_to_wxyz(shown[::step, :3, :3]).astype(np.float32)
             axes.batched_positions = pos[::step].astype(np.float32)
             axes.visible = True
+            box = bbox(job.scene.fuse(shown, max_points=4096))
+            job.shown_box = box  # from scratch the estimate spreads beyond the ground truth's box
             if job.scene.ground_truth is None:  # the panel's extent follows the estimate
-                box = bbox(job.scene.fuse(shown, max_points=4096))
                 old = None if job.box is None else float(job.box[1][0] - job.box[0][0])
                 width = float(box[1][0] - box[0][0])
                 if old is None or not 0.7 * old <= width <= 1.05 * old:  # hysteresis: rare re-layouts
