@@ -246,3 +246,12 @@ def test_readme_synopsis_matches_the_parser() -> None:
         assert options <= known, (command, options - known)
     assert {"--init", "--threads", "--quiet", "--progress", "--start", "--rrd"} <= named["run"]
     assert "ground_truth" in block and "--viewer-port" in named["serve"]
+
+
+def test_progress_bar_while_optimising(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--progress (or a terminal): the stage lines, and a tqdm bar over the iterations."""
+    args = ["run", "sample:sim2d-small", "--frames", "0:12", "--iterations", "4", "--progress"]
+    assert main([*args, "--out", str(tmp_path / "run")]) == 0
+    err = capsys.readouterr().err
+    assert "strep: warm start (multiway) ..." in err and "strep: optimising (4 iterations) ..." in err
+    assert "4/4" in err and ("it/s" in err or "s/it" in err), err  # the bar
