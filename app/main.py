@@ -23,6 +23,7 @@ from fastapi.staticfiles import StaticFiles
 
 import strep_core
 from app.api.main import api_router
+from app.api.routes.docs import install_docs
 from app.core.config import Settings, get_settings
 from app.core.errors import install_error_handlers
 from app.core.guard import RequestGuard
@@ -60,6 +61,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version=strep_core.__version__,
         description=DESCRIPTION,
         lifespan=lifespan,
+        docs_url=None,  # served from local files instead (app.api.routes.docs): no CDN
+        redoc_url=None,
     )
     app.state.settings = settings
     app.state.service = None
@@ -73,6 +76,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             allow_headers=["Authorization", "Content-Type", "Last-Event-ID"],
         )
     app.include_router(api_router)
+    install_docs(app)
     _mount_page(app)
     _document_errors(app, token_required=settings.api_token is not None)
     return app

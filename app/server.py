@@ -16,7 +16,12 @@ from pathlib import Path
 EXIT_REFUSED = 2
 
 
-def serve(host: str | None = None, port: int | None = None, data_dir: str | Path | None = None) -> int:
+def serve(
+    host: str | None = None,
+    port: int | None = None,
+    data_dir: str | Path | None = None,
+    viewer_port: int | None = None,
+) -> int:
     """Serve until interrupted; arguments left at ``None`` come from the settings (``STREP_*``).
 
     Returns the exit status: 0 after a clean stop, 2 when the settings are refused.
@@ -26,7 +31,8 @@ def serve(host: str | None = None, port: int | None = None, data_dir: str | Path
     from app.core.config import InsecureSettings, Settings
     from app.main import create_app
 
-    overrides = {k: v for k, v in {"host": host, "port": port, "data_dir": data_dir}.items() if v is not None}
+    given = {"host": host, "port": port, "data_dir": data_dir, "viewer_port": viewer_port}
+    overrides = {k: v for k, v in given.items() if v is not None}
     settings = Settings(**overrides)  # type: ignore[arg-type]
     try:
         settings.check_secure()
@@ -51,8 +57,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--host")
     parser.add_argument("--port", type=int)
     parser.add_argument("--data-dir", type=Path)
+    parser.add_argument("--viewer-port", type=int)
     args = parser.parse_args(argv)
-    return serve(host=args.host, port=args.port, data_dir=args.data_dir)
+    return serve(host=args.host, port=args.port, data_dir=args.data_dir, viewer_port=args.viewer_port)
 
 
 if __name__ == "__main__":

@@ -51,33 +51,43 @@ function fitCanvas(canvas) {
   return { ctx, W, H };
 }
 
-function drawChart(canvas, series, { log = false } = {}) {
+function drawChart(canvas, series, { log = false, empty = "waiting for iterations…", xFrom = null } = {}) {
   const { ctx, W, H } = fitCanvas(canvas);
-  const L = 52, R = 10, T = 10, B = 26;
+  const R = 10, T = 10, B = 26;
+  let L = 52;
   ctx.clearRect(0, 0, W, H);
   const pts = series.flatMap((s) => s.points).filter(([, y]) => isFinite(y) && (!log || y > 0));
   ctx.font = "11px system-ui, sans-serif";
   ctx.fillStyle = "#6b7385";
   if (!pts.length) {
-    ctx.fillText("waiting for iterations…", L, H / 2);
+    ctx.fillText(empty, L, H / 2);
     return;
   }
   const tx = (y) => (log ? Math.log10(y) : y);
-  let x0 = Math.min(...pts.map((p) => p[0])), x1 = Math.max(...pts.map((p) => p[0]));
+  let x0 = Math.min(xFrom ?? Infinity, ...pts.map((p) => p[0])), x1 = Math.max(...pts.map((p) => p[0]));
   let y0 = Math.min(...pts.map((p) => tx(p[1]))), y1 = Math.max(...pts.map((p) => tx(p[1])));
   if (x1 === x0) x1 = x0 + 1;
   if (y1 === y0) { y0 -= 0.5; y1 += 0.5; }
+  // tick labels first: the plot starts right of the widest one, so no label lies on a curve
+  const ticks = [0, 1, 2, 3, 4].map((i) => {
+    const yv = y0 + ((y1 - y0) * i) / 4;
+    return { text: fmt(log ? 10 ** yv : yv, 3), yy: T + (1 - i / 4) * (H - T - B) };
+  });
+  L = Math.ceil(Math.max(...ticks.map((t) => ctx.measureText(t.text).width))) + 12;
   const px = (x) => L + ((x - x0) / (x1 - x0)) * (W - L - R);
   const py = (y) => T + (1 - (tx(y) - y0) / (y1 - y0)) * (H - T - B);
   ctx.strokeStyle = "#dde1e8";
   ctx.lineWidth = 1;
-  for (let i = 0; i <= 4; i++) {
-    const yv = y0 + ((y1 - y0) * i) / 4, yy = T + (1 - i / 4) * (H - T - B);
+  ctx.textAlign = "right";
+  for (const { text, yy } of ticks) {
     ctx.beginPath(); ctx.moveTo(L, yy); ctx.lineTo(W - R, yy); ctx.stroke();
-    ctx.fillText(fmt(log ? 10 ** yv : yv, 3), 4, yy + 4);
+    ctx.fillText(text, L - 6, yy + 4);
   }
+  ctx.textAlign = "left";
   ctx.fillText(String(Math.round(x0)), L, H - 8);
-  ctx.fillText(`${Math.round(x1)} iterations`, W - R - 80, H - 8);
+  ctx.textAlign = "right";
+  ctx.fillText(`${Math.round(x1)} iterations`, W - R, H - 8);
+  ctx.textAlign = "left";
   // earlier series wider, so a curve that another one covers still shows at its edges
   series.forEach((s, i) => {
     const p = s.points.filter(([, y]) => isFinite(y) && (!log || y > 0));
@@ -92,10 +102,14 @@ function drawChart(canvas, series, { log = false } = {}) {
 
 function redraw() {
   const jobs = [...state.follow].map((id) => state.jobs.get(id)).filter(Boolean);
-  drawChart($("#loss-chart"), jobs.map((j) => ({ color: j.color, points: j.loss })), { log: true });
-  drawChart($("#ate-chart"), jobs.map((j) => ({ color: j.color, points: j.ate })));
+  const waiting = jobs.some((j) => j.status === "running") ? "waiting for the first iteration…" : "no iterations yet";
+  drawChart($("#loss-chart"), jobs.map((j) => ({ color: j.color, points: j.loss })), { log: true, empty: waiting, xFrom: 0 });
+  drawChart($("#ate-chart"), jobs.map((j) => ({ color: j.color, points: j.ate })), { empty: waiting, xFrom: 0 });
   const unit = jobs.map((j) => j.metrics?.unit || j.unit).find(Boolean);
-  $("#ate-caption").textContent = unit ? `ATE (${unit})` : "ATE";
+  $("#ate-caption").textContent = unit ? `ATE (${unit}), from the starting poses (iteration 0)` : "ATE";
+  $("#legend").innerHTML = jobs
+    .map((j) => `<span class="legend-item"><span class="swatch" style="background:${j.color}"></span>${esc(j.method)}</span>`)
+    .join("");
   const body = $("#results tbody");
   body.innerHTML = "";
   for (const j of jobs) {
@@ -111,6 +125,7 @@ function redraw() {
     const unit = m.unit ? ` ${esc(m.unit)}` : "";
     tr.innerHTML = `<td><span class="swatch" style="background:${j.color}"></span>${esc(j.method)}</td>
       <td class="status status-${j.status}" title="${esc(j.error)}">${j.status}</td>
+      <td class="stage">${esc(stageText(j))}</td>
       <td class="num">${j.iteration ?? "–"}${j.total ? " / " + j.total : ""}</td>
       <td class="num ate">${fmt(m.ate ?? j.lastAte)}${m.ate != null || j.lastAte != null ? unit : ""}</td>
       <td class="num">${fmt(m.point_l2)}${m.point_l2 != null ? unit : ""}</td>
@@ -119,6 +134,32 @@ function redraw() {
     body.appendChild(tr);
   }
   showActions(jobs);
+}
+
+// Where a job is: loading, warm start (and the ATE it reached), optimising, writing, done.
+const STAGES = { load: "loading the sequence", init: "warm start", optimise: "optimising", write: "writing files" };
+function stageName(stage) {
+  const [head, detail] = stage.split(/:(.*)/);
+  return (STAGES[head] || head) + (detail ? ` (${detail})` : "");
+}
+
+function stageText(j) {
+  const unit = j.metrics?.unit || j.unit || "";
+  const start = j.startAte != null ? `ATE ${fmt(j.startAte)} ${unit}`.trim() : "";
+  if (j.status === "queued") return "queued";
+  if (j.status === "succeeded") {
+    const end = j.metrics?.ate;
+    return start && end != null ? `done: ATE ${fmt(j.startAte)} → ${fmt(end)} ${unit}`.trim() : "done";
+  }
+  if (FINAL.has(j.status)) return j.status;
+  if (j.stage === "write" || j.metrics) return "writing files";
+  if (j.iteration > 0) return `optimising${start ? ` from ${start}` : ""}`;
+  if (j.iteration === 0) {
+    const head = j.stage?.startsWith("init") ? `${stageName(j.stage)} done` : "starting";
+    return `${head}${start ? `: ${start}` : ""}`;
+  }
+  if (j.started && !j.stage?.startsWith("init")) return "preparing the optimisation…";
+  return j.stage ? `${stageName(j.stage)}…` : "loading the sequence…";
 }
 
 // The run's links: the 3D viewer (shows this run there) and the comparison's recording.
@@ -185,7 +226,16 @@ async function follow(job) {
   redraw();
   loadJobs();
   const followed = [...state.follow].map((id) => state.jobs.get(id));
-  if (state.comparison && followed.every((j) => j && FINAL.has(j.status))) fetchComparisonFiles(state.comparison);
+  if (state.comparison && followed.every((j) => j && FINAL.has(j.status))) {
+    if (state.started === state.comparison) {
+      const counts = {};
+      for (const j of followed) counts[j.status] = (counts[j.status] || 0) + 1;
+      const failed = followed.some((j) => j.status !== "succeeded");
+      say(`comparison ${state.comparison} finished: ${Object.entries(counts).map(([k, n]) => `${n} ${k}`).join(", ")}`, failed);
+      state.started = null;
+    }
+    fetchComparisonFiles(state.comparison);
+  }
 }
 
 function handleMessage(entry, block) {
@@ -204,7 +254,11 @@ function handleMessage(entry, block) {
     entry.iteration = ev.iteration; entry.total = ev.total; entry.elapsed = ev.elapsed;
     if (ev.losses && ev.losses.total != null) entry.loss.push([ev.iteration, ev.losses.total]);
     if (ev.ate != null) { entry.ate.push([ev.iteration, ev.ate]); entry.lastAte = ev.ate; }
+    if (ev.iteration === 0) entry.startAte = ev.ate;
+  } else if (kind === "stage") {
+    entry.stage = ev.stage;
   } else if (kind === "start") {
+    entry.started = true;
     entry.total = ev.total_iterations;
     entry.unit = ev.unit;
   } else if (kind === "result") {
@@ -232,7 +286,10 @@ async function loadSequences(selectId) {
   sel.innerHTML = data
     .map((s) => `<option value="${esc(s.id)}">${esc(s.name)} (${s.dims}D, ${s.frames} frames${s.source === "upload" ? ", uploaded" : ""})</option>`)
     .join("");
+  // the first preset: the small 2D sample, from scratch, strep vs strep-nolink (about a minute)
+  const preset = data.find((s) => s.id === "sample:sim2d-small");
   if (selectId) sel.value = selectId;
+  else if (preset) sel.value = preset.id;
   showSequence();
 }
 
@@ -255,9 +312,14 @@ async function loadMethods() {
 async function start() {
   const methods = [...document.querySelectorAll("#methods input:checked")].map((i) => i.value);
   if (!methods.length) return say("choose at least one method", true);
-  const iterations = Number($("#iterations").value);
+  // no iteration count unless one is typed: the service's defaults apply (they depend on the start)
+  const typed = $("#iterations").value.trim();
+  const iterations = typed ? Number(typed) : null;
+  if (typed && !(Number.isInteger(iterations) && iterations >= 1)) return say("iterations: a whole number, 1 or more", true);
+  const planned = iterations ?? Number($("#start-mode").selectedOptions[0].dataset.iterations);
   // about 60 points per curve: an event (losses, poses, ATE) every few iterations
-  const optim = { iterations, event_interval: Math.max(1, Math.ceil(iterations / 60)) };
+  const optim = { event_interval: Math.max(1, Math.ceil(planned / 60)) };
+  if (iterations != null) optim.iterations = iterations;
   $("#start").disabled = true;
   try {
     const cmp = await api("/api/comparisons", {
@@ -266,6 +328,7 @@ async function start() {
       body: JSON.stringify({ sequence_id: $("#sequence").value, methods, config: { start: $("#start-mode").value, optim } }),
     });
     say(`comparison ${cmp.id} started`);
+    state.started = cmp.id;
     showComparison(cmp);
   } catch (err) {
     say(err.message, true);
@@ -379,10 +442,12 @@ async function init() {
   window.addEventListener("resize", scheduleRedraw);
   $("#upload-form").addEventListener("submit", upload);
   $("#sequence").addEventListener("change", showSequence);
-  // each start has its own default budget (the service's defaults: SCRATCH_PROFILE, OptimConfig)
-  $("#start-mode").addEventListener("change", (ev) => {
-    $("#iterations").value = ev.target.selectedOptions[0].dataset.iterations;
-  });
+  // each start has its own default budget (the service's: SCRATCH_PROFILE, OptimConfig), shown, not sent
+  const showDefault = () => {
+    $("#iterations").placeholder = `default ${$("#start-mode").selectedOptions[0].dataset.iterations}`;
+  };
+  $("#start-mode").addEventListener("change", showDefault);
+  showDefault();
   try {
     const health = await api("/api/health");
     // the viewer listens on the API's host: reach it through the name this page was loaded from

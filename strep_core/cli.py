@@ -12,7 +12,7 @@ import os
 import sys
 from collections.abc import Sequence as Seq
 from pathlib import Path
-from typing import Any, get_args
+from typing import Any, Literal, get_args
 
 from strep_core.config import InitName, StartName
 from strep_core.errors import StrepError
@@ -70,32 +70,70 @@ def build_config(args: argparse.Namespace) -> Any:
     return RunConfig.build(**base)
 
 
-class _ProgressSink:
-    """Shows a tqdm bar from the run's events (to stderr)."""
+ProgressMode = Literal["bar", "lines", "off"]
 
-    def __init__(self, enabled: bool) -> None:
-        self.enabled = enabled
+
+class _ProgressSink:
+    """Progress of every stage of a run, on stderr.
+
+    ``bar``: a line per stage (loading, warm start, writing) and a tqdm bar while optimising
+    (a terminal, or ``--progress``); ``lines``: one line per stage, the optimisation included,
+    no bar (stderr is a file or a pipe); ``off``: nothing (``--quiet``).
+    """
+
+    def __init__(self, mode: ProgressMode, method: str) -> None:
+        self.mode = mode
         self.bar: Any = None
+        self.method = method
+        self.unit = ""
+        self.optimising = False
+
+    def _line(self, text: str) -> None:
+        if self.bar is not None:
+            from tqdm import tqdm
+
+            tqdm.write(f"{self.method}: {text}", file=sys.stderr)
+        else:
+            print(f"{self.method}: {text}", file=sys.stderr, flush=True)
 
     def emit(self, event: Any) -> None:
-        if not self.enabled:
+        if self.mode == "off":
             return
-        from tqdm import tqdm
+        from strep_core.events import stage_label
 
-        if event.kind == "start":
+        if event.kind == "stage":
+            self._line(f"{stage_label(event.stage)} ...")
+        elif event.kind == "start":
             self.close()
-            self.bar = tqdm(total=event.total_iterations, desc=event.method, unit="it", leave=False)
-        elif event.kind == "iteration" and self.bar is not None:
-            self.bar.n = event.iteration
-            post = {k: f"{v:.4g}" for k, v in event.losses.items() if k == "total"}
-            if event.ate is not None:
-                post["ate"] = f"{event.ate:.3g}"
-            self.bar.set_postfix(post, refresh=False)
-            self.bar.refresh()
-        elif event.kind == "stage" and self.bar is None:
-            print(f"  {event.stage} ...", file=sys.stderr)
+            self.method, self.unit, self.total, self.optimising = (
+                event.method,
+                event.unit,
+                event.total_iterations,
+                False,
+            )
+        elif event.kind == "iteration":
+            ate = f"ATE {event.ate:.4g} {self.unit}" if event.ate is not None else None
+            if event.iteration == 0:  # the starting poses: after the warm start, if any
+                self._line(f"starting poses: {ate}" if ate else "starting poses ready")
+            if not self.optimising and event.iteration < event.total:
+                self.optimising = True
+                self._line(f"optimising ({event.total} iterations) ...")
+                if self.mode == "bar":
+                    from tqdm import tqdm
+
+                    self.bar = tqdm(total=event.total, desc=self.method, unit="it", leave=False, file=sys.stderr)
+            if self.bar is not None:
+                self.bar.n = event.iteration
+                post = {k: f"{v:.4g}" for k, v in event.losses.items() if k == "total"}
+                if event.ate is not None:
+                    post["ate"] = f"{event.ate:.3g}"
+                self.bar.set_postfix(post, refresh=False)
+                self.bar.refresh()
         elif event.kind == "result":
             self.close()
+            ate = event.metrics.get("ate")
+            done = f"registered: ATE {ate:.4g} {self.unit}" if isinstance(ate, (int, float)) else "registered"
+            self._line(f"{done}, {event.wall_seconds:.1f} s")
 
     def close(self) -> None:
         if self.bar is not None:
@@ -111,27 +149,67 @@ def _fmt(value: Any, unit: str = "") -> str:
     return f"{value}{unit}"
 
 
+def _accepted_inputs() -> str:
+    from strep_core.io import FORMATS
+
+    return "sample:NAME, " + ", ".join(f"{f.name} ({' '.join(f.extensions)})" for f in FORMATS)
+
+
+def _single_cloud(source: str) -> Path | None:
+    """``source`` when it is one PLY/PCD file (one frame, not a sequence), else None."""
+    path = Path(source)
+    return path if path.is_file() and path.suffix.lower() in (".ply", ".pcd") else None
+
+
+def _check_output(path: Path, what: str, *, folder: bool) -> None:
+    """Refuse, before the run, an output path that cannot be written: ``--out`` naming a file,
+    ``--rrd`` naming a folder, or a parent that is a file or not writable."""
+    if path.exists() and path.is_dir() != folder:
+        kind = "a file" if folder else "a folder"
+        raise StrepError(f"{what} {path}: is {kind}; give {'a folder' if folder else 'a file name'}")
+    parent = path if folder and path.exists() else path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise StrepError(f"{what} {path}: {parent} is a file, not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise StrepError(f"{what} {path}: {parent} is not writable")
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from strep_core.pipeline import run_input
 
+    if cloud := _single_cloud(args.input):
+        raise StrepError(
+            f"{cloud}: a single point cloud is one frame, and registration needs a sequence of 2 or more; "
+            f"give a folder of PLY/PCD frames or one of {_accepted_inputs()}"
+        )
     config = build_config(args)
     out_dir = Path(args.out)
-    sink = _ProgressSink(enabled=(not args.quiet and sys.stderr.isatty()) or args.progress)
+    _check_output(out_dir, "--out", folder=True)  # before the run, not after it
+    if args.rrd is not None:
+        _check_output(args.rrd, "--rrd", folder=False)
+    mode: ProgressMode = "off" if args.quiet else "bar" if (sys.stderr.isatty() or args.progress) else "lines"
+    sink = _ProgressSink(mode, config.method)
     try:
         if args.rrd is None:
             result = run_input(args.input, config, out_dir=out_dir, sink=sink)
         else:  # the recorder needs the sequence before the run: the steps of run_input, with it
+            import time
             import uuid
 
             from app.recording import cli_sink  # the Rerun sink lives in app/, imported only when asked
-            from strep_core.events import MultiSink
+            from strep_core.events import MultiSink, StageEvent
             from strep_core.methods import run
             from strep_core.pipeline import load_input, write_outputs
 
+            started = time.perf_counter()
+            sink.emit(StageEvent(stage="load", elapsed=0.0))
             seq = load_input(args.input, frames=config.frames)
             with cli_sink(args.rrd, seq, config.method, f"cli-{uuid.uuid4().hex[:12]}") as rrd:
                 result = run(seq, config.model_copy(update={"frames": None}), sink=MultiSink([sink, rrd]))
             result.config = config
+            sink.emit(StageEvent(stage="write", elapsed=time.perf_counter() - started))
             write_outputs(result, out_dir)
     finally:
         sink.close()
@@ -191,6 +269,16 @@ def cmd_methods(args: argparse.Namespace) -> int:
 def cmd_info(args: argparse.Namespace) -> int:
     from strep_core.pipeline import load_input
 
+    if cloud := _single_cloud(args.input):  # one frame: described, though no method registers it alone
+        from strep_core.io.folder import read_point_cloud
+
+        pts = read_point_cloud(cloud).points
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        info = {"name": cloud.name, "frames": 1, "dims": int(pts.shape[1]), "points": len(pts)}
+        info |= {"extent": [round(float(v), 6) for v in hi - lo], "has_ground_truth": False}
+        info["note"] = "one point cloud: `strep run` needs a sequence of 2 or more frames (a folder of PLY/PCD frames)"
+        print(json.dumps(info, indent=2))
+        return 0
     seq = load_input(args.input, frames=args.frames)
     print(json.dumps({**seq.summary(), "scale": round(seq.scale(), 6)}, indent=2))
     return 0
@@ -218,7 +306,7 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
 def cmd_serve(args: argparse.Namespace) -> int:
     from app.server import serve
 
-    return serve(host=args.host, port=args.port, data_dir=args.data_dir)
+    return serve(host=args.host, port=args.port, data_dir=args.data_dir, viewer_port=args.viewer_port)
 
 
 def make_parser() -> argparse.ArgumentParser:
@@ -229,7 +317,7 @@ def make_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     run = sub.add_parser("run", help="register a sequence and write trajectory, map and metrics")
-    run.add_argument("input", help="a file or folder in a supported format, or sample:NAME")
+    run.add_argument("input", help="a file or folder in a supported format (see `strep info`), or sample:NAME")
     run.add_argument("--method", "-m", help="registration method (see `strep methods`); default strep")
     run.add_argument("--out", "-o", default="runs/latest", help="output folder (default runs/latest)")
     run.add_argument("--frames", help="frame selection start:stop[:step]")
@@ -253,8 +341,12 @@ def make_parser() -> argparse.ArgumentParser:
     run.add_argument("--set", action="append", metavar="KEY=VALUE", help="any config field, e.g. loss.window=3")
     run.add_argument("--from-model", type=Path, help="a model.pt saved by an earlier learned run")
     run.add_argument("--freeze", action="store_true", help="with --from-model: re-optimise only the latents")
-    run.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
-    run.add_argument("--progress", action="store_true", help="progress bar even when stderr is not a terminal")
+    run.add_argument("--quiet", "-q", action="store_true", help="no progress at all (only the final line)")
+    run.add_argument(
+        "--progress",
+        action="store_true",
+        help="a progress bar even when stderr is not a terminal (else one line per stage there)",
+    )
     run.add_argument("--rrd", type=Path, metavar="FILE", help="also record the run into a Rerun recording (.rrd)")
     run.set_defaults(fn=cmd_run)
 
@@ -331,6 +423,11 @@ def make_parser() -> argparse.ArgumentParser:
     serve.add_argument("--host", help="bind address (default 127.0.0.1; others need STREP_API_TOKEN)")
     serve.add_argument("--port", type=int, help="HTTP port (default 8000)")
     serve.add_argument("--data-dir", type=Path, help="jobs, uploads and results (default ./strep-data)")
+    serve.add_argument(
+        "--viewer-port",
+        type=int,
+        help="port of the 3D viewer (default 8080, or STREP_VIEWER_PORT; the next free one when taken; 0: any)",
+    )
     serve.set_defaults(fn=cmd_serve)
     return parser
 

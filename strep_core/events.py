@@ -50,11 +50,29 @@ class IterationEvent(_Event):
 
 
 class StageEvent(_Event):
-    """A named stage of a run starts (e.g. the ICP warm start of a learned method)."""
+    """A named stage of a run starts: ``load`` (reading the input), ``init:<method>`` (the
+    warm start, e.g. ``init:multiway``), ``write`` (the result files). The optimisation itself
+    is announced by its `IterationEvent` s (iteration 0: the starting poses and their ATE)."""
 
     kind: Literal["stage"] = "stage"
     stage: str
     elapsed: float
+
+
+STAGE_LABELS = {
+    "load": "loading the sequence",
+    "init": "warm start",
+    "prepare": "preparing the optimisation",  # (viewers: after the start event, before iteration 0)
+    "optimise": "optimising",  # (viewers: from the first iteration event after iteration 0)
+    "write": "writing files",
+}
+
+
+def stage_label(stage: str) -> str:
+    """A stage's name for people: ``"init:multiway"`` -> ``"warm start (multiway)"``."""
+    head, _, detail = stage.partition(":")
+    label = STAGE_LABELS.get(head, head)
+    return f"{label} ({detail})" if detail else label
 
 
 class ResultEvent(_Event):

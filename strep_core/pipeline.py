@@ -12,12 +12,13 @@ Files written to the output folder (each to a temporary name, then renamed into 
 from __future__ import annotations
 
 import colorsys
+import time
 from pathlib import Path
 
 import numpy as np
 
 from strep_core.config import RunConfig
-from strep_core.events import CancelFlag, Sink
+from strep_core.events import CancelFlag, NullSink, Sink, StageEvent
 from strep_core.result import Result
 from strep_core.sequence import FrameSelection, Sequence
 
@@ -82,9 +83,13 @@ def run_input(
     """Load ``source`` (applying ``config.frames``), run ``config.method``, write files if asked."""
     from strep_core.methods import run
 
+    sink = sink or NullSink()
+    started = time.perf_counter()
+    sink.emit(StageEvent(stage="load", elapsed=0.0))
     seq = load_input(source, frames=config.frames)
     result = run(seq, config.model_copy(update={"frames": None}), sink=sink, cancel=cancel)
     result.config = config
     if out_dir is not None:
+        sink.emit(StageEvent(stage="write", elapsed=time.perf_counter() - started))
         write_outputs(result, out_dir)
     return result

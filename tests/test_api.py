@@ -63,7 +63,8 @@ def running_worker(client: TestClient, job_id: str) -> int:
 
     def ready() -> int | None:
         job = store.get_job(job_id)
-        return job["pid"] if job["pid"] and job["last_event_id"] >= 4 else None
+        # queued, running, stage load, start, then an iteration: the fifth event
+        return job["pid"] if job["pid"] and job["last_event_id"] >= 5 else None
 
     return wait_until(ready, what=f"worker of {job_id}")
 
@@ -255,13 +256,15 @@ def test_identity_job_events_and_files(client: TestClient, sequence: dict[str, A
     events = parse_sse(r.text)
     assert [e["id"] for e in events] == list(range(1, len(events) + 1))
     kinds = [e["event"] for e in events]
-    assert kinds == ["status", "status", "start", "result", "status"]
+    # stages: load (the worker reads the sequence), then write (the result files) after the result
+    assert kinds == ["status", "status", "stage", "start", "result", "stage", "status"]
+    assert [e["data"]["stage"] for e in events if e["event"] == "stage"] == ["load", "write"]
     assert [e["data"]["status"] for e in events if e["event"] == "status"] == ["queued", "running", "succeeded"]
     for e in events:
         assert e["data"]["kind"] == e["event"]
         if e["event"] != "status":
             assert parse_event(e["data"]).kind == e["event"]
-    result = events[3]["data"]
+    result = next(e["data"] for e in events if e["event"] == "result")
     assert len(result["poses"]) == 8
 
     done = client.get(f"/api/jobs/{job['id']}").json()

@@ -109,8 +109,8 @@ def stored_job(data_dir: Path, job_id: str) -> dict[str, Any]:
     return dict(row)
 
 
-def worker_pid(data_dir: Path, job_id: str, *, min_events: int = 4) -> int:
-    """Pid of a job's worker once it has emitted an iteration event."""
+def worker_pid(data_dir: Path, job_id: str, *, min_events: int = 5) -> int:
+    """Pid of a job's worker once it has emitted an iteration event (queued, running, stage, start, iteration)."""
     deadline = time.monotonic() + 60
     while True:
         row = stored_job(data_dir, job_id)

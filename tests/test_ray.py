@@ -200,7 +200,7 @@ def test_two_jobs_stream_store_and_cancel(client: TestClient) -> None:
     events = parse_sse(r.text)
     assert [e["id"] for e in events] == list(range(1, len(events) + 1))
     kinds = [e["event"] for e in events]
-    assert kinds[:3] == ["status", "status", "start"] and kinds[-2:] == ["result", "status"]
+    assert kinds[:4] == ["status", "status", "stage", "start"] and kinds[-3:] == ["result", "stage", "status"]
     assert [e["data"]["status"] for e in events if e["event"] == "status"] == ["queued", "running", "succeeded"]
     iterations = [e["data"]["iteration"] for e in events if e["event"] == "iteration"]
     assert iterations == sorted(iterations) and iterations[-1] == 16

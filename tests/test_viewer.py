@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from app.viewer import ViewerServer
-from app.viewer.scene import History, Snapshot, poses_to_matrices, rotations_to_wxyz
+from app.viewer.scene import History, Snapshot, poses_to_matrices, rotations_to_wxyz, stage_line
 from app.viewer.server import CHART_INTERVAL, loss_exponent
 from strep_core import geometry as g
 from strep_core.config import RunConfig
-from strep_core.events import IterationEvent, ListSink, MultiSink, StartEvent, pose_list
+from strep_core.events import IterationEvent, ListSink, MultiSink, StageEvent, StartEvent, pose_list
 from strep_core.methods import run
 from strep_core.pipeline import load_input
 
@@ -365,3 +365,60 @@ def test_chart_draws_chamfer_sized_losses_in_a_power_of_ten(viewer, seq) -> None
     assert viewer.wait_idle(5)
     info = viewer.jobs()["tiny-loss"]
     assert info["chart"][:2] == ["loss/total", "loss/chamfer"] and info["chart_exponent"] == -4
+
+
+def test_stage_line_follows_the_run() -> None:
+    snap = lambda it: Snapshot(it, 1.0, None, {}, 0.5)  # noqa: E731
+    kw = {"start_ate": 0.069, "unit": "px", "finished": False}
+    assert stage_line("load", None, **kw) == "stage: loading the sequence"
+    assert stage_line("init:multiway", None, **kw) == "stage: warm start (multiway)"
+    assert stage_line("init:multiway", snap(0), **kw) == "stage: warm start (multiway) done, ATE 0.069 px"
+    assert stage_line(None, snap(0), **kw) == "stage: starting, ATE 0.069 px"
+    assert stage_line("optimise", snap(5), **kw) == "stage: optimising (from ATE 0.069 px)"
+    assert stage_line("init:multiway", snap(5), **kw) == "stage: optimising (from ATE 0.069 px)"
+    assert stage_line("write", snap(5), **kw) == "stage: writing files"
+    assert stage_line("optimise", snap(5), **{**kw, "finished": True}) is None
+
+
+def test_side_panel_shows_the_stage_and_hides_terms_that_are_off(viewer, seq) -> None:
+    """Before: "stage: init:multiway" at iteration 5, and a flat occupancy curve at 0 for every run."""
+    gt = pose_list(g.pose_to_vector(seq.poses))
+    sink = viewer.sink("staged", "strep", seq, select=True)
+    sink.emit(StageEvent(stage="init:multiway", elapsed=0.1))
+    sink.emit(
+        StartEvent(
+            method="strep", sequence=seq.name, frames=len(seq), dims=2, unit="px", total_iterations=10,
+            initial_guess="multiway",
+        )
+    )  # fmt: skip
+    assert viewer.wait_idle(5)
+    text = viewer._jobs["staged"].nodes["gui/text"]
+    assert "stage: warm start (multiway)" in text.content
+    sink.emit(IterationEvent(iteration=0, total=10, elapsed=1.0, losses={}, poses=gt, ate=0.069))
+    assert viewer.wait_idle(5)
+    assert "stage: warm start (multiway) done, ATE 0.069 px" in text.content
+    for i in (5, 10):
+        time.sleep(CHART_INTERVAL)
+        losses = {"total": 0.02 / i, "chamfer": 0.02 / i, "occupancy": 0.0}
+        sink.emit(IterationEvent(iteration=i, total=10, elapsed=1.0 + i, losses=losses, poses=gt, ate=0.06))
+        assert viewer.wait_idle(5)
+    assert "stage: optimising (from ATE 0.069 px)" in text.content and "init:multiway" not in text.content
+    assert "occupancy" not in text.content and "chamfer" in text.content
+    assert viewer.jobs()["staged"]["chart"] == ["loss/total", "loss/chamfer", "ate"]  # no occupancy curve
+    viewer.remove_job("staged")
+
+
+def test_another_run_starts_live_with_its_own_iteration(viewer, seq, icp_events) -> None:
+    """Before: after a reload the slider kept 40, from another run, while the labels said 150."""
+    viewer.load_job("slider-a", "icp", seq, icp_events, select=True)
+    assert viewer.wait_idle(5)
+    viewer.set_replay(iteration=20)
+    assert viewer.wait_idle(5) and viewer.controls["iteration"].value == 20
+    short = [e for e in icp_events if e.kind != "iteration" or e.iteration <= 40]
+    viewer.load_job("slider-b", "icp-short", seq, short)
+    viewer.select("slider-b")
+    assert viewer.wait_idle(5)
+    state = viewer.replay_state()
+    assert state["selected"] == "slider-b" and state["live"] and not state["playing"]
+    assert viewer.controls["iteration"].value == viewer.jobs()["slider-b"]["iteration"]
+    viewer.set_replay(live=True)

@@ -415,6 +415,7 @@ class JobService:
             "job_id": job_id,
             "source": path,
             "selection": selection,
+            "sequence_name": self.sequences.name_of(job["sequence_id"]),  # not "sequence", the stored name
             "config": config.model_dump_json(),
             "tmp_dir": str(self.tmp_results / job_id),
             "out_dir": str(self.result_dir(job_id)),

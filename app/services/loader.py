@@ -96,5 +96,6 @@ class SequenceLoader:
         path, selection = source
         extract_dir = str(self.sequences.extract_dir / "service")
         seq: Sequence = load_source(path, selection, self.max_extract_bytes, extract_dir, self.max_points)
+        seq.name = self.sequences.name_of(sequence_id) or seq.name  # an upload: its name, not "sequence"
         self.reads += 1
         return seq.select(frames) if frames else seq

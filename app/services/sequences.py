@@ -232,6 +232,14 @@ class SequenceService:
             return None
         return str(self.settings.data_dir / row["path"]), row["selection"]
 
+    def name_of(self, sequence_id: str) -> str | None:
+        """An uploaded sequence's name (the uploaded file's, unless given): the worker names the
+        sequence it reads so (the stored copy is ``sequence.<ext>``); None for samples."""
+        if sequence_id.startswith(SAMPLE_PREFIX):
+            return None
+        row = self.store.get_sequence(sequence_id)
+        return None if row is None else str(row["name"])
+
     # ---- uploads ---------------------------------------------------------------------------
     @property
     def pending_uploads(self) -> int:

@@ -199,7 +199,7 @@ def run_job(spec: dict[str, Any], conn: multiprocessing.connection.Connection, c
         _import_plugins(spec.get("plugins", []))
         from strep_core.config import RunConfig
         from strep_core.errors import Cancelled, StrepError
-        from strep_core.events import MultiSink
+        from strep_core.events import MultiSink, StageEvent
         from strep_core.methods import run
         from strep_core.pipeline import write_outputs
 
@@ -207,6 +207,8 @@ def run_job(spec: dict[str, Any], conn: multiprocessing.connection.Connection, c
             config = RunConfig.model_validate_json(spec["config"])
             if config.threads is None:
                 config = config.model_copy(update={"threads": spec["threads"]})
+            started = time.perf_counter()
+            PipeSink(conn).emit(StageEvent(stage="load", elapsed=0.0))
             seq = load_source(
                 spec["source"],
                 spec.get("selection"),
@@ -214,6 +216,8 @@ def run_job(spec: dict[str, Any], conn: multiprocessing.connection.Connection, c
                 spec.get("extract_dir"),
                 spec.get("max_points"),
             )
+            if spec.get("sequence_name"):  # an upload: its name, not its stored file's ("sequence")
+                seq.name = spec["sequence_name"]
             if tmp_dir.exists():
                 shutil.rmtree(tmp_dir)
             tmp_dir.mkdir(parents=True)
@@ -224,6 +228,7 @@ def run_job(spec: dict[str, Any], conn: multiprocessing.connection.Connection, c
             finally:
                 if recorder is not None:
                     close_recorder(recorder)  # normally closed already by the ResultEvent
+            PipeSink(conn).emit(StageEvent(stage="write", elapsed=time.perf_counter() - started))
             files = sorted({*write_outputs(result, tmp_dir), *([RECORDING] if (tmp_dir / RECORDING).is_file() else [])})
             os.replace(tmp_dir, out_dir)  # all files appear at once, never half-written
             metrics = _finite(result.metrics)

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from strep_core import geometry as g
-from strep_core.events import Event, parse_event
+from strep_core.events import Event, parse_event, stage_label
 from strep_core.pipeline import frame_colors
 from strep_core.sequence import Sequence
 
@@ -304,7 +304,30 @@ class History:
                 xs, ys = out.setdefault("ate", ([], []))
                 xs.append(s.iteration)
                 ys.append(s.ate)
-        return {k: (np.asarray(x, np.float64), np.asarray(y, np.float64)) for k, (x, y) in out.items()}
+        # a loss term that is off (weight 0: the optimiser reports it as 0.0) is no curve
+        return {
+            k: (np.asarray(x, np.float64), np.asarray(y, np.float64))
+            for k, (x, y) in out.items()
+            if k == "ate" or any(v != 0.0 for v in y)
+        }
+
+
+def stage_line(
+    stage: str | None, snap: Snapshot | None, *, start_ate: float | None, unit: str, finished: bool
+) -> str | None:
+    """The line that says where a run is: ``"stage: warm start (multiway)"`` before its first
+    iteration event, ``"stage: warm start (multiway) done, ATE 0.069 px"`` at iteration 0,
+    ``"stage: optimising (from ATE 0.069 px)"`` after; None once finished or before anything."""
+    if finished:
+        return None
+    it = None if snap is None else snap.iteration
+    start = f"ATE {start_ate:.4g} {unit}" if start_ate is not None else ""
+    if it == 0:  # (also when replaying iteration 0)
+        head = f"{stage_label(stage)} done" if stage and stage.startswith("init") else "starting"
+        return f"stage: {head}" + (f", {start}" if start else "")
+    if stage == "optimise" or (it is not None and it > 0 and stage != "write"):
+        return "stage: optimising" + (f" (from {start})" if start else "")
+    return None if stage is None else f"stage: {stage_label(stage)}"
 
 
 def safe_name(text: str) -> str:

@@ -55,6 +55,7 @@ from app.viewer.scene import (
     progress_events,
     rotations_to_wxyz,
     safe_name,
+    stage_line,
     union_bbox,
 )
 from strep_core.events import Event, IterationEvent, ResultEvent, StageEvent, StartEvent
@@ -77,7 +78,7 @@ def camera_pose(box: tuple[np.ndarray, np.ndarray], *, fov: float, aspect: float
     center, extent = (lo + hi) / 2.0, hi - lo
     tan_v = math.tan(fov / 2.0)
     distance = max(
-        float(extent[0]) / (2.0 * tan_v * aspect * 0.85),  # width across the view
+        float(extent[0]) / (2.0 * tan_v * aspect * 0.8),  # width across the view, a margin each side
         float(max(extent[1], extent[2])) / (2.0 * tan_v * 0.8),  # depth and height up the view
         1e-6,
     )
@@ -119,6 +120,7 @@ class _Job:
     method: str | None = None
     total: int = 0
     stage: str | None = None
+    start_ate: float | None = None  # ATE of the starting poses (iteration 0: after the warm start)
     finished: bool = False
     metrics: dict[str, Any] = field(default_factory=dict)
     last_poses: np.ndarray | None = None
@@ -135,6 +137,7 @@ class _Job:
     chart_exponent: int = 0  # loss curves are drawn in units of 10**chart_exponent
     chart_pushed: float = -math.inf
     box: tuple[np.ndarray, np.ndarray] | None = None
+    shown_box: tuple[np.ndarray, np.ndarray] | None = None  # the estimated map as last pushed (framing)
     offset: np.ndarray = field(default_factory=lambda: np.zeros(3))
     rev: int = 0  # bumps when something besides the snapshot changes (result text, layout)
 
@@ -227,11 +230,13 @@ class ViewerServer:
         self._busy = False
         self._closed = False
         self._framed: tuple[str, bool] | None = None  # (group, all extents known) last framed
+        self._unframed_clients: set[int] = set()  # tabs whose canvas size just became known
 
         self.server = viser.ViserServer(host=host, port=port, verbose=verbose)
         if admit is not None:
             self._admit_clients(admit)
         self.server.scene.set_up_direction("+z")
+        self.server.on_client_connect(self._on_connect)
         self._build_gui()
         self._thread = threading.Thread(target=self._run, name="strep-viewer-push", daemon=True)
         self._thread.start()
@@ -365,9 +370,16 @@ class ViewerServer:
         with self._lock:
             if group not in self._groups:
                 raise KeyError(group)
-            self._selected = group
-            self._ui_rev += 1
-            self._wake.notify()
+            self._show_group(group)
+
+    def _show_group(self, group: str) -> None:
+        """Show ``group`` (lock held); another run starts live: a replay iteration picked in one
+        run means nothing in the next."""
+        if group != self._selected:
+            self._live, self._playing = True, False
+        self._selected = group
+        self._ui_rev += 1
+        self._wake.notify()
 
     def set_replay(
         self, *, live: bool | None = None, iteration: int | None = None, playing: bool | None = None
@@ -484,6 +496,25 @@ class ViewerServer:
     ) -> None:
         self.close()
 
+    def _on_connect(self, client: Any) -> None:
+        """Frame a tab's camera on the shown run when the tab reports a new canvas size (the
+        initial camera assumes 4:3; the canvas is what the docked panel leaves, and a tab first
+        reports its whole window, then the canvas beside the panel)."""
+        size = (0, 0)
+
+        def on_camera(camera: Any) -> None:
+            nonlocal size
+            now = (camera.image_width, camera.image_height)
+            if now == size or min(now) <= 0:
+                return
+            size = now
+            with self._lock:
+                self._unframed_clients.add(client.client_id)
+                self._ui_rev += 1
+                self._wake.notify()
+
+        client.camera.on_update(on_camera)
+
     # ---- event intake (any thread) ---------------------------------------------------------
     def _accept(self, job_id: str, event: Event) -> None:
         poses = None
@@ -497,12 +528,19 @@ class ViewerServer:
             self.stats.events += 1
             if isinstance(event, StartEvent):
                 job.method, job.total = event.method, event.total_iterations
+                if job.stage in (None, "load"):
+                    job.stage = "prepare"  # the optimiser sets up until its iteration 0
                 job.rev += 1
             elif isinstance(event, StageEvent):
                 job.stage = event.stage
                 job.rev += 1
             elif isinstance(event, IterationEvent):
                 job.total = max(job.total, event.total)
+                if event.iteration == 0:
+                    job.start_ate = event.ate
+                elif job.stage != "optimise":
+                    job.stage = "optimise"  # the warm start (``init:...``) is over
+                    job.rev += 1
                 if poses is not None:
                     job.last_poses = poses
                 job.history.append(
@@ -556,9 +594,7 @@ class ViewerServer:
             if group is not None:
                 with self._lock:
                     if group in self._groups:
-                        self._selected = group
-                        self._ui_rev += 1
-                        self._wake.notify()
+                        self._show_group(group)
 
         @self._gui_live.on_update
         def _(ev: viser.GuiEvent) -> None:
@@ -672,7 +708,10 @@ class ViewerServer:
                     default=1,
                 ),
                 "labels": {j.job_id: j.label for j in self._jobs.values()},
+                "latest_it": self._group_max_iteration(),
+                "frame_clients": set(self._unframed_clients),
             }
+            self._unframed_clients.clear()
             layout = set(self._layout_dirty)
             self._layout_dirty.clear()
             jobs = list(self._jobs.values())
@@ -843,23 +882,26 @@ class ViewerServer:
                 job.nodes[f"/jobs/{job.key}/map"].point_size = size
         _set_value(self._gui_live, ui["live"])
         self._gui_iter.max = max(int(ui["max_it"]), 1)
-        if not ui["live"]:
-            _set_value(self._gui_iter, min(int(ui["replay_it"]), self._gui_iter.max))
+        shown_it = ui["latest_it"] if ui["live"] else ui["replay_it"]  # never a value left from another run
+        _set_value(self._gui_iter, min(int(shown_it), self._gui_iter.max))
         _set_value(self._gui_gt, ui["show_gt"])
         _set_value(self._gui_size, ui["point_scale"])
         mode = "live" if ui["live"] else ("playing" if ui["playing"] else "paused")
         self._gui_status.content = f"{len(ui['groups'])} run(s); replay: {mode}"
         if selected is not None and (self._framed is None or self._framed[0] != selected):
             self._layout(selected)
+        elif selected is not None and ui["frame_clients"]:
+            self._frame_camera(selected, clients=ui["frame_clients"])
 
-    def _frame_camera(self, group: str) -> None:
+    def _frame_camera(self, group: str, *, clients: set[int] | None = None) -> None:
+        """Point every tab's camera (or only ``clients``) and the initial camera at ``group``."""
         members = self._members(group)
         if not members:
             return
         box = None
-        for job in members:
-            lo, hi = self._box_of(job)
-            box = union_bbox(box, (lo + job.offset, hi + job.offset))
+        for job in members:  # the panels and whatever the estimates show beyond them
+            for lo, hi in (self._box_of(job), job.shown_box or self._box_of(job)):
+                box = union_bbox(box, (lo + job.offset, hi + job.offset))
         assert box is not None
         size = float(max(np.max(box[1] - box[0]), 1e-6))
         # clip planes scaled to the scene: viser's default far plane (1000) hides maps in pixels
@@ -870,7 +912,9 @@ class ViewerServer:
         # position first: viser's camera position setter drags look_at along with it
         camera.position = tuple(position)
         camera.look_at = tuple(look_at)
-        for client in self.server.get_clients().values():
+        for client_id, client in self.server.get_clients().items():
+            if clients is not None and client_id not in clients:
+                continue
             cam = client.camera
             try:
                 width, height, fov = cam.image_width, cam.image_height, cam.fov
@@ -910,8 +954,9 @@ class ViewerServer:
             axes.batched_wxyzs = rotations_to_wxyz(shown[::step, :3, :3]).astype(np.float32)
             axes.batched_positions = pos[::step].astype(np.float32)
             axes.visible = True
+            box = bbox(job.scene.fuse(shown, max_points=4096))
+            job.shown_box = box  # from scratch the estimate spreads beyond the ground truth's box
             if job.scene.ground_truth is None:  # the panel's extent follows the estimate
-                box = bbox(job.scene.fuse(shown, max_points=4096))
                 old = None if job.box is None else float(job.box[1][0] - job.box[0][0])
                 width = float(box[1][0] - box[0][0])
                 if old is None or not 0.7 * old <= width <= 1.05 * old:  # hysteresis: rare re-layouts
@@ -929,12 +974,14 @@ class ViewerServer:
         if snap is not None:
             total = f"/{job.total}" if job.total else ""
             lines.append(f"iteration {snap.iteration}{total}, {snap.elapsed:.1f} s")
-            if snap.losses:
-                lines.append(", ".join(f"{k} {v:.4g}" for k, v in snap.losses.items()))
+            terms = {k: v for k, v in snap.losses.items() if v != 0.0}  # a term that is off reports 0
+            if terms:
+                lines.append(", ".join(f"{k} {v:.4g}" for k, v in terms.items()))
             if snap.ate is not None:
                 lines.append(f"ATE {snap.ate:.4g} {job.scene.unit}")
-        if job.stage and not job.finished:
-            lines.append(f"stage: {job.stage}")
+        stage = stage_line(job.stage, snap, start_ate=job.start_ate, unit=job.scene.unit, finished=job.finished)
+        if stage:
+            lines.append(stage)
         if job.finished:
             m = job.metrics
             parts = [

@@ -69,9 +69,12 @@ def read_point_cloud(path: Path, budget: ReadBudget | None = None) -> Cloud:
 
     if not path.is_file():
         raise FormatError(f"{path}: no such point-cloud file")
+    with open(path, "rb") as f:
+        head = f.read(64 * 1024)
+    if path.suffix.lower() == ".ply" and not head.startswith(b"ply"):  # else Open3D's RPly prints to stderr
+        raise FormatError(f"{path}: not a PLY file (a PLY file starts with the line 'ply')")
     if budget is not None:
-        with open(path, "rb") as f:
-            declared = declared_cloud_points(f.read(64 * 1024))
+        declared = declared_cloud_points(head)
         if declared is not None:
             budget.take_points(declared, str(path), declared=True)
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
