@@ -167,6 +167,8 @@ def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
     fine = params.max_correspondence * min(params.scales)
     loop_scales = tuple(cfg.loop_scales) if cfg.loop_scales is not None else params.scales[1:] or params.scales
 
+    use_global = seq.dim == 2 and params.global_match is not None and cfg.loop_global != "off"
+    robust_odometry = cfg.odometry_uncertain == "on" or (cfg.odometry_uncertain == "auto" and use_global)
     t0 = time.perf_counter()
     with reg.open3d_quiet(params.threads) as o3d:
         pgo = o3d.pipelines.registration
@@ -177,15 +179,42 @@ def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
         for k in range(1, k_frames):
             rel = g.relative(poses3[k - 1], poses3[k])
             info = reg.information_matrix(clouds[k], clouds[k - 1], rel, fine)
-            graph.edges.append(pgo.PoseGraphEdge(k, k - 1, rel, info, uncertain=False))
+            graph.edges.append(pgo.PoseGraphEdge(k, k - 1, rel, info, uncertain=robust_odometry))
 
-        candidates = loop_candidates(
-            g.translation(odo.poses), radius=radius, min_gap=cfg.loop_min_gap, max_per_frame=cfg.loop_max_candidates
+        loops: list[reg.LoopClosure] = []
+        tried = 0
+        if use_global:
+            # the global matcher proposes and verifies: a drifted chain still closes its loops
+            loops, tried = reg.global_loop_closures(
+                clouds,
+                odo.poses,
+                params,
+                radius=cfg.loop_global_radius * seq.scale(),
+                min_gap=max(cfg.loop_min_gap, cfg.local_map_frames + 1),
+                min_score=cfg.loop_global_score,
+                min_fitness=cfg.loop_min_fitness,
+                max_per_frame=cfg.loop_global_candidates,
+                every=cfg.loop_global_every,
+                scales=loop_scales,
+                on_frame=lambda j: progress.step(k_frames + j, odo.poses, k_frames),
+            )
+            for loop in loops:
+                info = reg.information_matrix(clouds[loop.j], clouds[loop.i], loop.transformation, fine)
+                graph.edges.append(pgo.PoseGraphEdge(loop.j, loop.i, loop.transformation, info, uncertain=True))
+        candidates = (
+            []
+            if use_global
+            else loop_candidates(
+                g.translation(odo.poses),
+                radius=radius,
+                min_gap=cfg.loop_min_gap,
+                max_per_frame=cfg.loop_max_candidates,
+            )
         )
+        kept = len(loops) if use_global else 0
         by_frame: dict[int, list[int]] = {}
         for i, j in candidates:
             by_frame.setdefault(j, []).append(i)
-        kept = 0
         for j in range(k_frames):
             for i in by_frame.get(j, []):
                 res = reg.register_with(
@@ -196,7 +225,7 @@ def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
                 info = reg.information_matrix(clouds[j], clouds[i], res.transformation, fine)
                 graph.edges.append(pgo.PoseGraphEdge(j, i, res.transformation, info, uncertain=True))
                 kept += 1
-            if j > 0:
+            if j > 0 and not use_global:
                 progress.step(k_frames + j, odo.poses, k_frames)
         t_loops = time.perf_counter() - t0
 
@@ -225,7 +254,8 @@ def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
         history=progress.history,
         timings={"registration": odo.seconds, "loop_closure": t_loops, "optimization": t_opt},
         artifacts={
-            "loop_candidates": len(candidates),
+            "loop_candidates": tried if use_global else len(candidates),
+            "loop_source": "global scan matcher" if use_global else "proximity",
             "loop_edges": kept,
             "graph_edges": len(graph.edges),
             **frames,
