@@ -163,6 +163,13 @@ class ClassicalConfig(_Section):
     edge_prune_threshold: float = Field(
         default=0.25, ge=0, le=1, description="pose graph: line-process weight below which a loop edge is pruned"
     )
+    loop_preference: float = Field(
+        default=1.0,
+        gt=0,
+        le=100,
+        description="pose graph: Open3D's preference_loop_closure (below 1: trust odometry edges more, above 1: "
+        "loop closures more)",
+    )
     loop_global: Literal["auto", "on", "off"] = Field(
         default="auto",
         description="multiway, 2D: loop closures proposed by the global scan matcher (each keyframe against earlier "

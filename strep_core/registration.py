@@ -867,7 +867,11 @@ def global_loop_closures(
     spread = max(1, min_gap // 2)
     found: list[LoopClosure] = []
     tried = 0
-    for j in range(min_gap, len(clouds), every):
+    for j in range(1, len(clouds)):
+        if j < min_gap or j % every:
+            if on_frame is not None:
+                on_frame(j)
+            continue
         near = [i for i in tree.query_ball_point(positions[j], r=radius) if i <= j - min_gap]
         near.sort(key=lambda i: float(np.linalg.norm(positions[i] - positions[j])))
         chosen: list[int] = []

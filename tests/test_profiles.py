@@ -94,3 +94,15 @@ def test_run_records_the_profile_in_metrics_and_config(intel) -> None:
     res = run(intel.select("0:6"), RunConfig(method="identity"))
     assert res.metrics["profile"] == res.config.profile
     assert res.config.profile_reason
+
+
+def test_a_generated_walk_keeps_its_sensor_through_npz(tmp_path: Path) -> None:
+    """`strep generate 3d` writes the camera's vertical axis into the .npz: the probe of the file
+    read back picks the turning-camera profile as it does in memory."""
+    from strep_core.io.npz import read_npz, write_npz
+    from strep_core.sim.depth3d import simulate_3d
+
+    write_npz(simulate_3d(2001, frames=16), tmp_path / "walk.npz")
+    seq = read_npz(tmp_path / "walk.npz")
+    assert seq.meta["sensor"] == {"kind": "depth", "vertical_axis": [0.0, -1.0, 0.0]}
+    assert profiles.probe(seq).profile == "depth-turning"

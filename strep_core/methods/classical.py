@@ -238,6 +238,7 @@ def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
             pgo.GlobalOptimizationOption(
                 max_correspondence_distance=fine,
                 edge_prune_threshold=cfg.edge_prune_threshold,
+                preference_loop_closure=cfg.loop_preference,
                 reference_node=0,
             ),
         )
