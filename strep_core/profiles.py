@@ -11,7 +11,9 @@ Profiles (values in `PROFILES`; measurements in ``docs/design/profiles.md``):
 
 * ``laser-keyframes``: planar scans taken far apart (CARMEN keyframes: steps of 0.2 to 0.6 of the
   scale, turns up to 80 degrees): the global scan matcher on every consecutive pair
-  (`strep_core.scanmatch`), and it also proposes and verifies the pose graph's loop closures.
+  (`strep_core.scanmatch`), and it also proposes and verifies the pose graph's loop closures;
+  each pair starts from the previous pair's motion, and along a corridor (a direction the matched
+  normals barely constrain) the translation stays at that guess (``icp_degeneracy``).
 * ``laser-dense``: planar scans a small step apart (DeepMapping's v1_pose0, the simulated 2D
   lidar): plain coarse-to-fine ICP; the global matcher costs 4x and changes nothing there.
 * ``depth-turning``: a depth camera that turns in place by tens of degrees between frames (the
@@ -46,7 +48,14 @@ from strep_core.sequence import Sequence
 
 # Overlays per config section. Values are what the benchmark measured best (docs/design/profiles.md).
 PROFILES: dict[str, dict[str, dict[str, Any]]] = {
-    "laser-keyframes": {"classical": {"icp_global": "on", "loop_global": "on"}},
+    "laser-keyframes": {
+        "classical": {
+            "icp_global": "on",
+            "loop_global": "on",
+            "icp_motion_prior": "velocity",
+            "icp_degeneracy": 0.05,
+        }
+    },
     "laser-dense": {"classical": {"icp_global": "off", "loop_global": "off"}},
     "depth-turning": {
         "classical": {
