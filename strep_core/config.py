@@ -109,6 +109,13 @@ class ClassicalConfig(_Section):
     icp_global_yaw_step: float = Field(
         default=1.0, gt=0, le=30, description="global scan match: finest yaw step (degrees)"
     )
+    icp_global_yaw_window: float = Field(
+        default=180.0,
+        gt=0,
+        le=180,
+        description="global scan match of consecutive pairs: headings within +-this many degrees of the guess's "
+        "(180: the full circle; loop closures always search the full circle)",
+    )
     icp_global_range: float = Field(
         default=8.0, gt=0, le=1000, description="global scan match: source points within this fraction of the scale"
     )

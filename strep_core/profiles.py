@@ -54,6 +54,7 @@ PROFILES: dict[str, dict[str, dict[str, Any]]] = {
             "loop_global": "on",
             "icp_motion_prior": "velocity",
             "icp_degeneracy": 0.05,
+            "icp_global_yaw_window": 120.0,
         }
     },
     "laser-dense": {"classical": {"icp_global": "off", "loop_global": "off"}},

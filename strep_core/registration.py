@@ -44,6 +44,7 @@ reset; `pair_report` lists those frames and counts them for a run's artifacts an
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -142,6 +143,7 @@ def resolve_params(seq: Sequence, cfg: ClassicalConfig) -> RegistrationParams:
             window=cfg.icp_global_window * s,
             resolution=cfg.icp_global_resolution * s,
             yaw_step=float(np.radians(cfg.icp_global_yaw_step)),
+            yaw_window=float(np.radians(cfg.icp_global_yaw_window)),
             max_range=cfg.icp_global_range * s,
             prior_weight=cfg.icp_global_prior,
             prior_scale=s,
@@ -856,9 +858,9 @@ def global_loop_closures(
     """
     from scipy.spatial import cKDTree
 
-    gm = params.global_match
-    if gm is None or not params.planar or max_per_frame <= 0:
+    if params.global_match is None or not params.planar or max_per_frame <= 0:
         return [], 0
+    gm = dataclasses.replace(params.global_match, yaw_window=float(np.pi))  # a loop may face any way
     poses3 = g.to_se3(np.asarray(poses, dtype=np.float64))
     pts = [np.asarray(c.points)[:, :2] for c in clouds]
     positions = poses3[:, :2, 3]
