@@ -29,7 +29,8 @@ best pose of `strep_core.scanmatch` (every heading, +-1.5 s, with a prior on the
 steps); when that ICP result lands in another basin than ICP from the guess, the higher matcher
 score wins.
 
-Optional guards (off by default; the benchmark turns them on per suite, `strep_core.bench`):
+Optional guards (off by default; the profile a run picks from its data turns them on,
+`strep_core.profiles`):
 
 * yaw search (``icp_yaw_search``, ``icp_yaw_step``): the coarsest stage also starts from the
   guess turned about the sensor's vertical axis (``z`` in 2D, ``icp_yaw_axis`` in 3D), and the

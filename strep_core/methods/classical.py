@@ -13,7 +13,11 @@ characteristic length ``s = Sequence.scale()`` (median point range; 125 px on v1
   1.1 px with the local map); voxel ``0.01 s`` (see `strep_core.registration`).
 * ``multiway``: odometry edges from ``icp``; loop closures proposed by proximity of the
   current positions within ``0.8 s`` (100 px on v1_pose0), at least 2 frames apart, 8 nearest
-  per frame, kept when their ICP fitness at ``d/2`` reaches 0.6.
+  per frame, kept when their ICP fitness at ``d/2`` reaches 0.6. On 2D keyframes
+  (``loop_global``, on in the ``laser-keyframes`` profile) the global scan matcher proposes and
+  verifies them instead (`strep_core.registration.global_loop_closures`: the 3 nearest earlier
+  keyframes within ``3 s`` of every 2nd keyframe, matched over every heading, kept at a score of
+  0.6 both ways), and odometry edges may then be pruned by the line process too.
 * ``kiss``: KISS-ICP voxel ``6.5 h``, ``h`` the median nearest-neighbour spacing of the points
   within a frame (`strep_core.registration.point_spacing`): a voxel must gather several points
   of one scan, so sparse 2D scan lines (h = 3 px on v1_pose0: voxel 20 px, 0.16 s) need far
@@ -149,9 +153,11 @@ def loop_candidates(positions: np.ndarray, *, radius: float, min_gap: int, max_p
 def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: RunContext) -> MethodOutput:
     """Multiway registration with an Open3D pose graph.
 
-    Nodes start at the incremental ICP poses; odometry edges (certain) join consecutive frames;
-    loop-closure edges (uncertain, pruned by the line process) join frames whose current
-    positions lie within the loop radius, when their ICP fitness reaches ``loop_min_fitness``;
+    Nodes start at the incremental ICP poses; odometry edges (certain, unless
+    ``odometry_uncertain``) join consecutive frames; loop-closure edges (uncertain, pruned by the
+    line process) join frames whose current positions lie within the loop radius, when their
+    ICP fitness reaches ``loop_min_fitness`` (2D with ``loop_global``: found by the global scan
+    matcher, `strep_core.registration.global_loop_closures`);
     their ICP starts from the odometry estimate, so it skips the coarsest stage by default
     (``loop_scales``).
     Information matrices come from `get_information_matrix_from_point_clouds`. 2D runs in 3D
