@@ -225,7 +225,9 @@ def run_case(case: BenchCase, methods: list[str], quick: bool, threads: int | No
         try:
             cfg = case_config(case, m, quick, seq)
             res = run(seq, cfg if threads is None else cfg.model_copy(update={"threads": threads}))
-            row = {k: v for k, v in res.metrics.items() if isinstance(v, (int, float, str)) or v is None}
+            row: dict[str, Any] = {
+                k: v for k, v in res.metrics.items() if isinstance(v, (int, float, str)) or v is None
+            }
             row["status"] = "ok"
             # what `strep run INPUT --config` needs to redo this row: every setting, the profile
             # the probe chose among them, the reader options and the frame selection

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import colorsys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -25,7 +26,7 @@ MAP_MAX_POINTS = 2_000_000  # cap of map.ply; larger maps are evenly strided
 
 
 def load_input(
-    source: str | Path, *, frames: str | FrameSelection | None = None, options: dict[str, object] | None = None
+    source: str | Path, *, frames: str | FrameSelection | None = None, options: dict[str, Any] | None = None
 ) -> Sequence:
     """Read ``source``: a path in any supported format, or ``sample:NAME`` for a bundled sample;
     ``options`` go to the reader (`RunConfig.data`)."""
