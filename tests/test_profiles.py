@@ -61,6 +61,11 @@ def test_a_named_profile_skips_the_probe_and_given_fields_keep_their_values(inte
     assert plain.classical == RunConfig().classical
     with pytest.raises(ConfigError):
         RunConfig.build(profile="laser-sparse")
+    from typing import get_args
+
+    from strep_core.config import ProfileName
+
+    assert set(get_args(ProfileName)) == {"auto", *profiles.PROFILE_NAMES}  # one list of names
 
 
 def test_a_saved_config_keeps_its_settings_whatever_the_probe_says(intel) -> None:
@@ -106,3 +111,18 @@ def test_a_generated_walk_keeps_its_sensor_through_npz(tmp_path: Path) -> None:
     seq = read_npz(tmp_path / "walk.npz")
     assert seq.meta["sensor"] == {"kind": "depth", "vertical_axis": [0.0, -1.0, 0.0]}
     assert profiles.probe(seq).profile == "depth-turning"
+
+
+def test_strep_run_takes_a_profile_and_config_json_records_it(tmp_path: Path) -> None:
+    from strep_core.cli import main
+
+    out = tmp_path / "run"
+    argv = ["run", "sample:sim2d-small", "--method", "icp", "--frames", "0:8", "--out", str(out), "--quiet"]
+    assert main([*argv, "--profile", "laser-keyframes"]) == 0
+    saved = json.loads((out / "config.json").read_text())
+    assert saved["profile"] == "laser-keyframes" and saved["profile_reason"] == "given"
+    assert saved["classical"]["icp_global"] == "on" and saved["frames"] == "0:8"
+    assert json.loads((out / "metrics.json").read_text())["profile"] == "laser-keyframes"
+    assert main([*argv]) == 0  # auto: the probe chooses and says why
+    saved = json.loads((out / "config.json").read_text())
+    assert saved["profile"] in profiles.PROFILE_NAMES and saved["profile_reason"].startswith("probe: ")
