@@ -3,8 +3,9 @@
 For each log and window: every consecutive keyframe pair (k-1, k) matched scan to scan from
 identity by `strep_core.scanmatch` with the default settings of `ClassicalConfig` (window 1.5,
 cell 0.025 and range 8 times the scale; 1 degree; no prior), and the default 2D front end
-(`incremental_icp`: ICP from the guess and from the global match against a local map of 5
-frames, the matcher's score with the step prior choosing). A pair is correct within 2 degrees
+(`incremental_icp` with the profile the probe picks, laser-keyframes: ICP from the velocity guess
+and from the global match against a local map of 5 frames, the matcher's score with the step
+prior choosing, the weak-direction guard). A pair is correct within 2 degrees
 and 10 cm of the reference relative pose. Prints a table and one JSON line.
 
     PYTHONPATH=. .venv/bin/python benchmarks/scan_matcher.py [--windows 0:100,300:400] [--whole]
@@ -21,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from strep_core import geometry as g
-from strep_core import metrics
+from strep_core import metrics, profiles
 from strep_core import registration as reg
 from strep_core.config import ClassicalConfig
 from strep_core.io.carmen import read_carmen
@@ -60,7 +61,9 @@ def measure(log: str, window: str, front_end: bool) -> dict[str, object]:
         "cell_m": params.resolution,
     }
     if front_end:
-        rp = reg.resolve_params(seq, ClassicalConfig())
+        # the front end as a run with the defaults has it: the profile the probe picks
+        cfg = ClassicalConfig.model_validate(profiles.overlay(profiles.probe(seq).profile, seq).get("classical", {}))
+        rp = reg.resolve_params(seq, cfg)
         out = reg.incremental_icp(seq, np.repeat(np.eye(3)[None], len(seq), 0), rp)
         est = g.relative(out.poses[:-1], out.poses[1:])
         row |= {

@@ -4,11 +4,11 @@ Suites (``--suites``):
 
 * ``v1_pose0``: DeepMapping's public 2D sequence (real file in the shared data), pixels;
 * ``sim2d``: simulated 2D lidar like the paper's, 20 trajectories over 3 maps (seeded), pixels;
-* ``carmen``: real laser logs, intel and aces windows 0:100 and 300:400, metres, from identity
-  (the logs' odometry equals their corrected poses, so it is dropped and every method starts
-  from the same guess); every method's ICP searches yaw and uses a constant-velocity prior
-  (`CARMEN_CLASSICAL`);
-* ``sim3d``: simulated indoor depth like the paper's AVD setting, 16-frame trajectories, metres;
+* ``carmen``: real laser logs, intel, aces and belgioioso windows 0:100 and 300:400 (quick:
+  0:100), metres, from identity (the logs' odometry equals their corrected poses: the reader
+  drops it); the probe picks the ``laser-keyframes`` profile (`strep_core.profiles`);
+* ``sim3d``: simulated indoor depth like the paper's AVD setting, 16-frame trajectories, metres
+  (the probe picks the ``depth-turning`` profile);
 * ``sevenscenes``: real Kinect depth (Microsoft 7-Scenes, frames 0-99 in the shared data),
   16-frame windows of every 4th frame (0:64:4, 16:80:4, 36:100:4) and of every frame (0:16,
   40:56), depth subsampled every 8 px (about 4,300 points a frame), from identity;
@@ -56,8 +56,10 @@ DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 @dataclass(frozen=True)
 class BenchCase:
     """One sequence of a suite; ``init`` (a `RunConfig.init`) overrides every method's
-    initial guess, ``iterations`` caps learned methods' optimiser iterations, ``classical``
-    overrides `ClassicalConfig` fields for every method (the learned ones' warm start included).
+    initial guess, ``iterations`` caps learned methods' optimiser iterations, ``data`` holds the
+    reader options the loader used (recorded as `RunConfig.data`, so ``strep run`` with the saved
+    config.json reads the same frames). Every other setting is the default, the profile chosen
+    by the probe included (`strep_core.profiles`): no suite has constants of its own.
     ``start="scratch"`` (``strep bench --start scratch``) runs the learned methods from identity
     with no classical step and their from-scratch settings; ``init`` and ``iterations`` then
     apply to the classical methods only."""
@@ -67,15 +69,17 @@ class BenchCase:
     load: Callable[[], Sequence]
     init: str | None = None
     iterations: int | None = None
-    classical: dict[str, Any] = field(default_factory=dict)
+    data: dict[str, Any] = field(default_factory=dict)
     start: str = "pose-graph"
+    source: str | None = None  # the input a user gives `strep run` (None: generated in memory)
+    frames: str | None = None  # the frame selection the loader applied
 
 
 def _v1_pose0(data: Path, quick: bool) -> Iterator[BenchCase]:
     from strep_core.io.deepmapping import read_deepmapping
 
     path = data / "deepmapping_2d" / "v1_pose0.tar"
-    yield BenchCase("v1_pose0", "v1_pose0", lambda: read_deepmapping(path))
+    yield BenchCase("v1_pose0", "v1_pose0", lambda: read_deepmapping(path), source=str(path))
 
 
 def _sim2d(data: Path, quick: bool) -> Iterator[BenchCase]:
@@ -92,46 +96,22 @@ def _sim2d(data: Path, quick: bool) -> Iterator[BenchCase]:
         )
 
 
-# CARMEN logs are keyframes that turn by up to 50 degrees between scans, with no usable
-# odometry (it equals the corrected poses): every method's ICP searches yaw +-30 degrees,
-# starts each pair from the previous pair's motion and also from a correlative scan match
-# (+-60 degrees, +-4.5 correspondence distances: about 1.5 m). Measured on the four windows,
-# ICP from identity: 8.5 / 3.9 / 12.6 / 7.8 m with none, 0.43 / 1.98 / 0.29 / 0.43 m with the
-# first two, 0.33 / 0.10 / 0.29 / 0.43 m with all three.
-CARMEN_CLASSICAL: dict[str, Any] = {"icp_yaw_search": 30.0, "icp_motion_prior": "velocity", "icp_correlative": 4.5}
-
-
 def _carmen(data: Path, quick: bool) -> Iterator[BenchCase]:
     from strep_core.io.carmen import read_carmen
 
     windows = ["0:100"] if quick else ["0:100", "300:400"]
-    for log in ("intel", "aces"):
+    for log in ("intel", "aces", "belgioioso"):
         path = data / "carmen" / f"{log}-corrected.log.gz"
         for w in windows:
 
             def load(path: Path = path, w: str = w, log: str = log) -> Sequence:
+                # the reader drops these logs' odometry (it equals the corrected poses): every
+                # method starts from identity, as `strep run LOG --frames W` does
                 seq = read_carmen(path, frames=w)
-                # same start for every method: identity (FACTS: classical tools from identity)
-                return replace(seq, initial_poses=None, name=f"{log}[{w}]")
+                assert seq.initial_poses is None
+                return replace(seq, name=f"{log}[{w}]")
 
-            yield BenchCase("carmen", f"{log}[{w}]", load, classical=CARMEN_CLASSICAL)
-
-
-# The simulated AVD-like walks stand still while turning by 30 degrees, or step 0.3 m, in rooms
-# whose walls fill many views: every method's ICP searches yaw +-30 degrees (the capture's
-# heading step) about the camera's vertical axis, runs finer stages, and keeps the guess's
-# translation along directions the matched normals leave free. Measured on the ten sequences,
-# frame-to-frame ICP chained from identity: 67 of 150 pairs within 3 degrees and 5 cm and
-# 1.16 m ATE with the defaults, 119 pairs and 0.28 m with these (identity: 0.40 m); the `icp`
-# method (local map of 5 frames by default): 1.53 m with the defaults, 0.32 m with these.
-SIM3D_CLASSICAL: dict[str, Any] = {
-    "icp_yaw_search": 30.0,
-    "icp_yaw_step": 30.0,
-    "icp_yaw_axis": (0.0, -1.0, 0.0),
-    "icp_scales": [1.0, 0.5, 0.25],
-    "icp_degeneracy": 0.05,
-    "local_map_frames": 1,
-}
+            yield BenchCase("carmen", f"{log}[{w}]", load, source=str(path), frames=w)
 
 
 def _sim3d(data: Path, quick: bool) -> Iterator[BenchCase]:
@@ -139,7 +119,7 @@ def _sim3d(data: Path, quick: bool) -> Iterator[BenchCase]:
 
     count = 2 if quick else 10
     for i in range(count):
-        yield BenchCase("sim3d", f"sim3d-{i}", lambda i=i: simulate_3d(2000 + i, frames=16), classical=SIM3D_CLASSICAL)
+        yield BenchCase("sim3d", f"sim3d-{i}", lambda i=i: simulate_3d(2000 + i, frames=16))
 
 
 SEVENSCENES_STRIDE = 8  # 640 x 480 depth every 8 px: about 4,300 valid points a frame
@@ -160,7 +140,15 @@ def _sevenscenes(data: Path, quick: bool) -> Iterator[BenchCase]:
             seq.name = f"7scenes[{w}]"
             return seq
 
-        yield BenchCase("sevenscenes", f"7scenes[{w}]", load, iterations=REAL3D_ITERATIONS)
+        yield BenchCase(
+            "sevenscenes",
+            f"7scenes[{w}]",
+            load,
+            iterations=REAL3D_ITERATIONS,
+            data={"stride": SEVENSCENES_STRIDE},
+            source=str(path),
+            frames=w,
+        )
 
 
 def _bunny(data: Path, quick: bool) -> Iterator[BenchCase]:
@@ -176,7 +164,15 @@ def _bunny(data: Path, quick: bool) -> Iterator[BenchCase]:
 
         # one summary group per initial guess: "bunny" (identity) and "bunny+fpfh"
         suite = "bunny" if init == "identity" else f"bunny+{init}"
-        yield BenchCase(suite, f"bunny[{init}]", load, init=init, iterations=REAL3D_ITERATIONS)
+        yield BenchCase(
+            suite,
+            f"bunny[{init}]",
+            load,
+            init=init,
+            iterations=REAL3D_ITERATIONS,
+            data={"voxel": BUNNY_VOXEL},
+            source=str(path),
+        )
 
 
 SUITES: dict[str, Callable[[Path, bool], Iterator[BenchCase]]] = {
@@ -207,13 +203,12 @@ def case_config(case: BenchCase, method: str, quick: bool, seq: Sequence) -> Run
 
     if case.start == "scratch" and get(method).learned:
         optim = {"iterations": QUICK_SCRATCH_ITERATIONS} if quick else {}
-        return RunConfig.build(method=method, start="scratch", optim=optim)
+        return RunConfig.build(method=method, start="scratch", optim=optim, data=case.data)
     cfg = method_config(method, quick, seq)
     if case.init is not None:
         cfg = cfg.model_copy(update={"init": case.init})
-    if case.classical:
-        classical = type(cfg.classical).model_validate({**cfg.classical.model_dump(), **case.classical})
-        cfg = cfg.model_copy(update={"classical": classical})
+    if case.data:
+        cfg = cfg.model_copy(update={"data": type(cfg.data).model_validate(case.data)})
     if case.iterations is not None and cfg.optim.iterations > case.iterations:
         cfg = cfg.model_copy(update={"optim": cfg.optim.model_copy(update={"iterations": case.iterations})})
     return cfg
@@ -230,8 +225,14 @@ def run_case(case: BenchCase, methods: list[str], quick: bool, threads: int | No
         try:
             cfg = case_config(case, m, quick, seq)
             res = run(seq, cfg if threads is None else cfg.model_copy(update={"threads": threads}))
-            row = {k: v for k, v in res.metrics.items() if isinstance(v, (int, float, str)) or v is None}
+            row: dict[str, Any] = {
+                k: v for k, v in res.metrics.items() if isinstance(v, (int, float, str)) or v is None
+            }
             row["status"] = "ok"
+            # what `strep run INPUT --config` needs to redo this row: every setting, the profile
+            # the probe chose among them, the reader options and the frame selection
+            row["input"] = case.source
+            row["config"] = {**res.config.model_dump(mode="json"), "frames": case.frames}
         except Exception as exc:  # a failing method is a result, not a crash of the benchmark
             row = {"method": m, "status": f"failed: {type(exc).__name__}: {exc}", "ate": None, "point_l2": None}
             row["wall_seconds"] = time.perf_counter() - t0
@@ -376,7 +377,8 @@ def write_docs(path: Path, table: str, report: dict[str, Any]) -> None:
             if report.get("start") == "scratch"
             else "Learned methods start from the pose-graph (`multiway`) warm start; "
         )
-        + "CARMEN windows start every method from identity, with ICP's yaw search and constant-velocity prior.\n\n"
+        + "CARMEN windows start every method from identity; settings are the defaults with the profile the "
+        "probe picks (`strep_core.profiles`).\n\n"
         f"{table}\n"
     )
     Path(path).write_text(text)

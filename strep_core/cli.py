@@ -52,6 +52,7 @@ def build_config(args: argparse.Namespace) -> Any:
         "device": args.device,
         "threads": args.threads,
         "from_model": str(args.from_model) if args.from_model else None,
+        "profile": args.profile,
     }
     if args.init is not None and args.start is None:
         base.pop("start", None)  # a config file's resolved start yields to a new --init
@@ -205,7 +206,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
             started = time.perf_counter()
             sink.emit(StageEvent(stage="load", elapsed=0.0))
-            seq = load_input(args.input, frames=config.frames)
+            seq = load_input(args.input, frames=config.frames, options=config.data.options())
             with cli_sink(args.rrd, seq, config.method, f"cli-{uuid.uuid4().hex[:12]}") as rrd:
                 result = run(seq, config.model_copy(update={"frames": None}), sink=MultiSink([sink, rrd]))
             result.config = config
@@ -334,6 +335,11 @@ def make_parser() -> argparse.ArgumentParser:
         choices=get_args(InitName),
         help="initial guess (auto: odometry if present else identity; learned methods add a pose-graph warm start "
         "unless --start scratch)",
+    )
+    run.add_argument(
+        "--profile",
+        choices=["auto", "none", "laser-keyframes", "laser-dense", "depth-turning", "depth-handheld"],
+        help="settings for this kind of data (default auto: a probe of a few frame pairs picks one)",
     )
     run.add_argument("--device", choices=["cpu", "cuda", "auto"])
     run.add_argument("--threads", type=int, help="CPU threads for torch (default: all cores)")

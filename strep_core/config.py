@@ -109,6 +109,13 @@ class ClassicalConfig(_Section):
     icp_global_yaw_step: float = Field(
         default=1.0, gt=0, le=30, description="global scan match: finest yaw step (degrees)"
     )
+    icp_global_yaw_window: float = Field(
+        default=180.0,
+        gt=0,
+        le=180,
+        description="global scan match of consecutive pairs: headings within +-this many degrees of the guess's "
+        "(180: the full circle; loop closures always search the full circle)",
+    )
     icp_global_range: float = Field(
         default=8.0, gt=0, le=1000, description="global scan match: source points within this fraction of the scale"
     )
@@ -162,6 +169,36 @@ class ClassicalConfig(_Section):
     )
     edge_prune_threshold: float = Field(
         default=0.25, ge=0, le=1, description="pose graph: line-process weight below which a loop edge is pruned"
+    )
+    loop_preference: float = Field(
+        default=1.0,
+        gt=0,
+        le=100,
+        description="pose graph: Open3D's preference_loop_closure (below 1: trust odometry edges more, above 1: "
+        "loop closures more)",
+    )
+    loop_global: Literal["auto", "on", "off"] = Field(
+        default="auto",
+        description="multiway, 2D: loop closures proposed by the global scan matcher (each keyframe against earlier "
+        "ones within loop_global_radius * scale of its estimate, accepted above loop_global_score, refined by ICP) "
+        "instead of by proximity alone; auto: on for 2D sequences when icp_global is on",
+    )
+    loop_global_radius: float = Field(
+        default=3.0, gt=0, le=100, description="global loop closures: search radius, fraction of the scale"
+    )
+    loop_global_score: float = Field(
+        default=0.6, ge=0, le=1, description="global loop closures: least matcher score (mean likelihood) to accept"
+    )
+    odometry_uncertain: Literal["auto", "on", "off"] = Field(
+        default="auto",
+        description="multiway: odometry edges may be pruned by the line process like loop closures (a wrong "
+        "consecutive match then yields to the loops around it); auto: on with the global loop closures",
+    )
+    loop_global_every: int = Field(
+        default=2, ge=1, le=1000, description="global loop closures: try every this many frames"
+    )
+    loop_global_candidates: int = Field(
+        default=3, ge=0, le=100, description="global loop closures: earlier frames tried per frame, nearest first"
     )
     # ---- KISS-ICP
     kiss_voxel: float | None = Field(
@@ -344,6 +381,27 @@ def _overlay(given: Any, profile: dict[str, Any]) -> dict[str, Any]:
     return {**profile, **(given or {})}
 
 
+class DataConfig(_Section):
+    """Reader options (`strep_core.io.load_sequence`): ``None`` leaves the reader's default;
+    an option the input's format does not take is refused."""
+
+    stride: int | None = Field(default=None, ge=1, le=64, description="depth images: keep every stride-th pixel")
+    max_range: float | None = Field(default=None, gt=0, description="laser logs: drop ranges at or beyond (m)")
+    max_depth: float | None = Field(default=None, gt=0, description="depth images: drop points farther (m)")
+    depth_scale: float | None = Field(default=None, gt=0, description="depth images: raw units per metre")
+    intrinsics: list[float] | None = Field(
+        default=None, min_length=4, max_length=4, description="depth images: fx, fy, cx, cy in pixels"
+    )
+    voxel: float | None = Field(default=None, gt=0, description="point-cloud folders: voxel downsampling")
+
+    def options(self) -> dict[str, Any]:
+        """The options given, as keyword arguments of the reader."""
+        return {k: v for k, v in self.model_dump().items() if v is not None}
+
+
+ProfileName = Literal["auto", "none", "laser-keyframes", "laser-dense", "depth-turning", "depth-handheld"]
+
+
 class RunConfig(_Section):
     """Everything one run needs besides its input.
 
@@ -369,6 +427,15 @@ class RunConfig(_Section):
         "warm start (init auto: the multiway pose graph); auto = scratch if init is identity, else pose-graph",
     )
     frames: str | None = Field(default=None, max_length=64, description="frame selection start:stop[:step]")
+    data: DataConfig = Field(default_factory=DataConfig, description="reader options")
+    profile: ProfileName = Field(
+        default="auto",
+        description="settings chosen from the data (`strep_core.profiles`): auto = a probe of a few frame pairs "
+        "picks one; a name applies it to the fields not given; none = the defaults",
+    )
+    profile_reason: str | None = Field(
+        default=None, max_length=500, description="set by the run: why this profile (the probe's measures)"
+    )
     classical: ClassicalConfig = Field(default_factory=ClassicalConfig)
     model: ModelConfig = Field(default_factory=ModelConfig)
     loss: LossConfig = Field(default_factory=LossConfig)

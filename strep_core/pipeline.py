@@ -14,6 +14,7 @@ from __future__ import annotations
 import colorsys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -25,15 +26,18 @@ from strep_core.sequence import FrameSelection, Sequence
 MAP_MAX_POINTS = 2_000_000  # cap of map.ply; larger maps are evenly strided
 
 
-def load_input(source: str | Path, *, frames: str | FrameSelection | None = None) -> Sequence:
-    """Read ``source``: a path in any supported format, or ``sample:NAME`` for a bundled sample."""
+def load_input(
+    source: str | Path, *, frames: str | FrameSelection | None = None, options: dict[str, Any] | None = None
+) -> Sequence:
+    """Read ``source``: a path in any supported format, or ``sample:NAME`` for a bundled sample;
+    ``options`` go to the reader (`RunConfig.data`)."""
     from strep_core import samples
     from strep_core.io import load_sequence
 
     text = str(source)
     if samples.is_sample(text):
         return samples.load_sample(text.split(":", 1)[1], frames=frames)
-    return load_sequence(text, frames=frames)
+    return load_sequence(text, frames=frames, **(options or {}))
 
 
 def frame_colors(labels: np.ndarray, num_frames: int) -> np.ndarray:
@@ -86,9 +90,9 @@ def run_input(
     sink = sink or NullSink()
     started = time.perf_counter()
     sink.emit(StageEvent(stage="load", elapsed=0.0))
-    seq = load_input(source, frames=config.frames)
+    seq = load_input(source, frames=config.frames, options=config.data.options())
     result = run(seq, config.model_copy(update={"frames": None}), sink=sink, cancel=cancel)
-    result.config = config
+    result.config = result.config.model_copy(update={"frames": config.frames})  # the profile chosen kept
     if out_dir is not None:
         sink.emit(StageEvent(stage="write", elapsed=time.perf_counter() - started))
         write_outputs(result, out_dir)

@@ -29,7 +29,8 @@ best pose of `strep_core.scanmatch` (every heading, +-1.5 s, with a prior on the
 steps); when that ICP result lands in another basin than ICP from the guess, the higher matcher
 score wins.
 
-Optional guards (off by default; the benchmark turns them on per suite, `strep_core.bench`):
+Optional guards (off by default; the profile a run picks from its data turns them on,
+`strep_core.profiles`):
 
 * yaw search (``icp_yaw_search``, ``icp_yaw_step``): the coarsest stage also starts from the
   guess turned about the sensor's vertical axis (``z`` in 2D, ``icp_yaw_axis`` in 3D), and the
@@ -44,6 +45,7 @@ reset; `pair_report` lists those frames and counts them for a run's artifacts an
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -142,6 +144,7 @@ def resolve_params(seq: Sequence, cfg: ClassicalConfig) -> RegistrationParams:
             window=cfg.icp_global_window * s,
             resolution=cfg.icp_global_resolution * s,
             yaw_step=float(np.radians(cfg.icp_global_yaw_step)),
+            yaw_window=float(np.radians(cfg.icp_global_yaw_window)),
             max_range=cfg.icp_global_range * s,
             prior_weight=cfg.icp_global_prior,
             prior_scale=s,
@@ -809,3 +812,94 @@ def _local_map(clouds: list[Any], poses3: np.ndarray, k: int, params: Registrati
     if params.voxel is not None and not params.planar:
         merged = merged.voxel_down_sample(params.voxel)
     return merged
+
+
+# --------------------------------------------------------------------------------------------
+# Loop closures proposed and verified by the global scan matcher (2D)
+
+
+@dataclass
+class LoopClosure:
+    """A verified loop closure: ``transformation`` ``(4, 4)`` maps frame ``j`` into frame ``i``."""
+
+    i: int
+    j: int
+    transformation: np.ndarray
+    score: float
+    fitness: float
+
+
+def global_loop_closures(
+    clouds: list[Any],
+    poses: np.ndarray,
+    params: RegistrationParams,
+    *,
+    radius: float,
+    min_gap: int,
+    min_score: float,
+    min_fitness: float,
+    max_per_frame: int,
+    every: int = 1,
+    scales: tuple[float, ...] | None = None,
+    on_frame: Callable[[int], None] | None = None,
+) -> tuple[list[LoopClosure], int]:
+    """Loop closures of a 2D sequence found by the global scan matcher (`strep_core.scanmatch`).
+
+    For every ``every``-th frame j, the earlier frames i (``j - i >= min_gap``) whose estimated
+    positions lie within ``radius`` of j's, nearest first, at most ``max_per_frame`` of them and no
+    two within ``min_gap // 2`` frames of each other, are matched: frame j against frame i over
+    every heading and ``params.global_match.window`` around the estimate's relative pose (so a
+    chain that drifted by up to the window still closes), then refined by ICP from the match
+    (``scales``). A candidate is kept when the matcher scores the refined pose at least
+    ``min_score`` in both directions (j in i's field and i in j's: a scan that sees only part of
+    the other cannot pass by overlapping a wall) and ICP matches ``min_fitness`` of j's points.
+
+    Returns:
+        The loop closures and the number of candidates tried.
+    """
+    from scipy.spatial import cKDTree
+
+    if params.global_match is None or not params.planar or max_per_frame <= 0:
+        return [], 0
+    gm = dataclasses.replace(params.global_match, yaw_window=float(np.pi))  # a loop may face any way
+    poses3 = g.to_se3(np.asarray(poses, dtype=np.float64))
+    pts = [np.asarray(c.points)[:, :2] for c in clouds]
+    positions = poses3[:, :2, 3]
+    tree = cKDTree(positions)
+    stages = (params.scales[1:] or params.scales) if scales is None else tuple(scales)
+    spread = max(1, min_gap // 2)
+    found: list[LoopClosure] = []
+    tried = 0
+    for j in range(1, len(clouds)):
+        if j < min_gap or j % every:
+            if on_frame is not None:
+                on_frame(j)
+            continue
+        near = [i for i in tree.query_ball_point(positions[j], r=radius) if i <= j - min_gap]
+        near.sort(key=lambda i: float(np.linalg.norm(positions[i] - positions[j])))
+        chosen: list[int] = []
+        for i in near:
+            if len(chosen) >= max_per_frame:
+                break
+            if any(abs(i - c) < spread for c in chosen):
+                continue
+            chosen.append(i)
+        for i in chosen:
+            tried += 1
+            guess = from_se3(g.relative(poses3[i], poses3[j])[None], 2)[0]
+            matcher = ScanMatcher(pts[i], gm, center=guess[:2, 2])
+            match = matcher.match(pts[j], guess)
+            if match.score < min_score:
+                continue
+            res = _register(clouds[j], clouds[i], g.to_se3(match.pose), params, stages, ())
+            if res.kept_guess or res.fitness < min_fitness:
+                continue
+            pose2 = from_se3(res.transformation[None], 2)[0]
+            forward = matcher.evaluate(pts[j], pose2)
+            backward = ScanMatcher(pts[j], gm, center=g.inverse(pose2)[:2, 2]).evaluate(pts[i], g.inverse(pose2))
+            if min(forward, backward) < min_score:
+                continue
+            found.append(LoopClosure(i, j, res.transformation, min(forward, backward), res.fitness))
+        if on_frame is not None:
+            on_frame(j)
+    return found, tried

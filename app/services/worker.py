@@ -117,17 +117,18 @@ def load_source(
     max_extract_bytes: int,
     extract_dir: str | None = None,
     max_points: int | None = None,
+    options: dict[str, Any] | None = None,
 ) -> Any:
     """The `Sequence` behind a job's or an upload's source (``sample:NAME`` or a stored file).
 
     A stored file is read within the service's limits (bytes inflated, points; see
     `strep_core.io.limits`). A ``.zip`` is extracted under ``extract_dir`` (a folder the
-    service sweeps), if given.
+    service sweeps), if given. ``options`` go to the reader (`RunConfig.data`).
     """
     from strep_core.pipeline import load_input
 
     if source.startswith("sample:"):
-        return load_input(source, frames=selection)
+        return load_input(source, frames=selection, options=options)
     from strep_core.io import load_sequence
 
     if extract_dir is not None:
@@ -135,7 +136,7 @@ def load_source(
     limits: dict[str, Any] = {"max_extract_bytes": max_extract_bytes}
     if max_points is not None:
         limits["max_points"] = max_points
-    return load_sequence(source, frames=selection, extract_dir=extract_dir, **limits)
+    return load_sequence(source, frames=selection, extract_dir=extract_dir, **limits, **(options or {}))
 
 
 def open_recorder(path: Path, job_id: str, seq: Any, config: Any) -> Any:
@@ -215,6 +216,7 @@ def run_job(spec: dict[str, Any], conn: multiprocessing.connection.Connection, c
                 spec["max_extract_bytes"],
                 spec.get("extract_dir"),
                 spec.get("max_points"),
+                config.data.options(),
             )
             if spec.get("sequence_name"):  # an upload: its name, not its stored file's ("sequence")
                 seq.name = spec["sequence_name"]

@@ -159,6 +159,7 @@ def read_carmen(
                 "max_range": limit,
                 "max_range_rule": rule,
                 "beams": len(scans[0][0]),
+                "sensor": {"kind": "laser", "planar": True, "fov_deg": 180.0},
                 "odometry": "equal to the corrected poses; not used" if odometry_is_corrected else "raw",
             },
         )

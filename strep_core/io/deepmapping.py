@@ -117,5 +117,5 @@ def read_deepmapping(
         unit="px",
         poses=poses,
         indices=sel,
-        meta={"source": str(path), "format": "deepmapping"},
+        meta={"source": str(path), "format": "deepmapping", "sensor": {"kind": "laser", "planar": True}},
     )

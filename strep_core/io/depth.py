@@ -229,6 +229,11 @@ def _poses(folder: Path, depth_files: list[Path], layout: str, sel: np.ndarray) 
     )
 
 
+# what a depth image says of its camera: OpenCV axes (x right, y down, z forward), so a level
+# camera's vertical axis is -y in its own frame (`strep_core.profiles` turns about it)
+DEPTH_CAMERA = {"kind": "depth", "axes": "opencv", "vertical_axis": [0.0, -1.0, 0.0]}
+
+
 def read_depth_folder(
     path: str | Path,
     *,
@@ -321,6 +326,7 @@ def read_depth_folder(
                 "depth_scale": depth_scale,
                 "max_depth": max_depth,
                 "intrinsics": [fx, fy, cx, cy],
+                "sensor": DEPTH_CAMERA,
                 "poses_from": pose_source or None,
                 "files": [files[i].name for i in sel],
             },

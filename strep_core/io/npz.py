@@ -15,6 +15,9 @@ origins        (K, D) float                 optional sensor origin per frame (de
 indices        (K,) int                     optional original frame indices
 unit           str                          optional ``"px"`` or ``"m"`` (default ``"m"``)
 name           str                          optional name
+sensor         str                          optional ``"laser"`` or ``"depth"`` (what took it)
+vertical_axis  (3,) float                   optional: the sensor's up direction in its own
+                                            frame (a level depth camera, OpenCV axes: 0 -1 0)
 ============== ============================ ==============================================
 
 Object arrays are refused (no pickles). Arrays are read in chunks, each charged to the read's
@@ -105,6 +108,15 @@ def read_npz(
         raise FormatError(f"{path}: needs keys 'points' and 'counts', or 'frames'")
     unit = str(data["unit"]) if "unit" in data else "m"
     name = str(data["name"]) if "name" in data else path.stem
+    meta: dict[str, object] = {"source": str(path), "format": "npz"}
+    if "sensor" in data:  # what the sensor was (`strep_core.profiles` reads it)
+        sensor: dict[str, object] = {"kind": str(data["sensor"])}
+        if "vertical_axis" in data:
+            axis = np.asarray(data["vertical_axis"], dtype=np.float64).reshape(-1)
+            if axis.shape != (3,) or not np.isfinite(axis).all() or not np.linalg.norm(axis) > 0:
+                raise FormatError(f"{path}: 'vertical_axis' must be 3 finite numbers, not all 0")
+            sensor["vertical_axis"] = [float(c) for c in axis]
+        meta["sensor"] = sensor
     try:
         seq = Sequence(
             frames=chunks,
@@ -114,7 +126,7 @@ def read_npz(
             poses=data.get("poses"),
             initial_poses=data.get("initial_poses"),
             indices=data.get("indices"),
-            meta={"source": str(path), "format": "npz"},
+            meta=meta,
         )
     except (ValueError, TypeError) as exc:
         if isinstance(exc, SequenceError):
@@ -137,6 +149,11 @@ def write_npz(seq: Sequence, path: str | Path, *, compressed: bool = True) -> No
         arrays["poses"] = seq.poses
     if seq.initial_poses is not None:
         arrays["initial_poses"] = seq.initial_poses
+    sensor = seq.meta.get("sensor") if isinstance(seq.meta, dict) else None
+    if isinstance(sensor, dict) and sensor.get("kind") in ("laser", "depth"):
+        arrays["sensor"] = np.array(sensor["kind"])
+        if sensor.get("vertical_axis") is not None:
+            arrays["vertical_axis"] = np.asarray(sensor["vertical_axis"], dtype=np.float64)
     save = np.savez_compressed if compressed else np.savez
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp.npz")

@@ -13,7 +13,11 @@ characteristic length ``s = Sequence.scale()`` (median point range; 125 px on v1
   1.1 px with the local map); voxel ``0.01 s`` (see `strep_core.registration`).
 * ``multiway``: odometry edges from ``icp``; loop closures proposed by proximity of the
   current positions within ``0.8 s`` (100 px on v1_pose0), at least 2 frames apart, 8 nearest
-  per frame, kept when their ICP fitness at ``d/2`` reaches 0.6.
+  per frame, kept when their ICP fitness at ``d/2`` reaches 0.6. On 2D keyframes
+  (``loop_global``, on in the ``laser-keyframes`` profile) the global scan matcher proposes and
+  verifies them instead (`strep_core.registration.global_loop_closures`: the 3 nearest earlier
+  keyframes within ``3 s`` of every 2nd keyframe, matched over every heading, kept at a score of
+  0.6 both ways), and odometry edges may then be pruned by the line process too.
 * ``kiss``: KISS-ICP voxel ``6.5 h``, ``h`` the median nearest-neighbour spacing of the points
   within a frame (`strep_core.registration.point_spacing`): a voxel must gather several points
   of one scan, so sparse 2D scan lines (h = 3 px on v1_pose0: voxel 20 px, 0.16 s) need far
@@ -149,9 +153,11 @@ def loop_candidates(positions: np.ndarray, *, radius: float, min_gap: int, max_p
 def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: RunContext) -> MethodOutput:
     """Multiway registration with an Open3D pose graph.
 
-    Nodes start at the incremental ICP poses; odometry edges (certain) join consecutive frames;
-    loop-closure edges (uncertain, pruned by the line process) join frames whose current
-    positions lie within the loop radius, when their ICP fitness reaches ``loop_min_fitness``;
+    Nodes start at the incremental ICP poses; odometry edges (certain, unless
+    ``odometry_uncertain``) join consecutive frames; loop-closure edges (uncertain, pruned by the
+    line process) join frames whose current positions lie within the loop radius, when their
+    ICP fitness reaches ``loop_min_fitness`` (2D with ``loop_global``: found by the global scan
+    matcher, `strep_core.registration.global_loop_closures`);
     their ICP starts from the odometry estimate, so it skips the coarsest stage by default
     (``loop_scales``).
     Information matrices come from `get_information_matrix_from_point_clouds`. 2D runs in 3D
@@ -167,6 +173,8 @@ def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
     fine = params.max_correspondence * min(params.scales)
     loop_scales = tuple(cfg.loop_scales) if cfg.loop_scales is not None else params.scales[1:] or params.scales
 
+    use_global = seq.dim == 2 and params.global_match is not None and cfg.loop_global != "off"
+    robust_odometry = cfg.odometry_uncertain == "on" or (cfg.odometry_uncertain == "auto" and use_global)
     t0 = time.perf_counter()
     with reg.open3d_quiet(params.threads) as o3d:
         pgo = o3d.pipelines.registration
@@ -177,15 +185,42 @@ def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
         for k in range(1, k_frames):
             rel = g.relative(poses3[k - 1], poses3[k])
             info = reg.information_matrix(clouds[k], clouds[k - 1], rel, fine)
-            graph.edges.append(pgo.PoseGraphEdge(k, k - 1, rel, info, uncertain=False))
+            graph.edges.append(pgo.PoseGraphEdge(k, k - 1, rel, info, uncertain=robust_odometry))
 
-        candidates = loop_candidates(
-            g.translation(odo.poses), radius=radius, min_gap=cfg.loop_min_gap, max_per_frame=cfg.loop_max_candidates
+        loops: list[reg.LoopClosure] = []
+        tried = 0
+        if use_global:
+            # the global matcher proposes and verifies: a drifted chain still closes its loops
+            loops, tried = reg.global_loop_closures(
+                clouds,
+                odo.poses,
+                params,
+                radius=cfg.loop_global_radius * seq.scale(),
+                min_gap=max(cfg.loop_min_gap, cfg.local_map_frames + 1),
+                min_score=cfg.loop_global_score,
+                min_fitness=cfg.loop_min_fitness,
+                max_per_frame=cfg.loop_global_candidates,
+                every=cfg.loop_global_every,
+                scales=loop_scales,
+                on_frame=lambda j: progress.step(k_frames + j, odo.poses, k_frames),
+            )
+            for loop in loops:
+                info = reg.information_matrix(clouds[loop.j], clouds[loop.i], loop.transformation, fine)
+                graph.edges.append(pgo.PoseGraphEdge(loop.j, loop.i, loop.transformation, info, uncertain=True))
+        candidates = (
+            []
+            if use_global
+            else loop_candidates(
+                g.translation(odo.poses),
+                radius=radius,
+                min_gap=cfg.loop_min_gap,
+                max_per_frame=cfg.loop_max_candidates,
+            )
         )
+        kept = len(loops) if use_global else 0
         by_frame: dict[int, list[int]] = {}
         for i, j in candidates:
             by_frame.setdefault(j, []).append(i)
-        kept = 0
         for j in range(k_frames):
             for i in by_frame.get(j, []):
                 res = reg.register_with(
@@ -196,7 +231,7 @@ def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
                 info = reg.information_matrix(clouds[j], clouds[i], res.transformation, fine)
                 graph.edges.append(pgo.PoseGraphEdge(j, i, res.transformation, info, uncertain=True))
                 kept += 1
-            if j > 0:
+            if j > 0 and not use_global:
                 progress.step(k_frames + j, odo.poses, k_frames)
         t_loops = time.perf_counter() - t0
 
@@ -209,6 +244,7 @@ def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
             pgo.GlobalOptimizationOption(
                 max_correspondence_distance=fine,
                 edge_prune_threshold=cfg.edge_prune_threshold,
+                preference_loop_closure=cfg.loop_preference,
                 reference_node=0,
             ),
         )
@@ -225,7 +261,8 @@ def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
         history=progress.history,
         timings={"registration": odo.seconds, "loop_closure": t_loops, "optimization": t_opt},
         artifacts={
-            "loop_candidates": len(candidates),
+            "loop_candidates": tried if use_global else len(candidates),
+            "loop_source": "global scan matcher" if use_global else "proximity",
             "loop_edges": kept,
             "graph_edges": len(graph.edges),
             **frames,

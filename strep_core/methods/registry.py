@@ -194,6 +194,9 @@ def run(
     if config.frames:
         seq = seq.select(config.frames)
     started = time.perf_counter()
+    from strep_core.profiles import resolve
+
+    config = resolve(config, seq)  # settings chosen from the data (or the profile named)
     ctx = RunContext(sink=sink, cancel=cancel, started=started)
 
     label, init_poses = initial_guess(seq, config, ctx, learned=info.learned)
@@ -221,6 +224,7 @@ def run(
         "dims": seq.dim,
         "unit": seq.unit,
         "initial_guess": label,
+        "profile": config.profile,
         "iterations": out.iterations,
         "wall_seconds": wall,
         "ate": None,

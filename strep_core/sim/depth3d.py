@@ -452,6 +452,7 @@ def simulate_3d(
         poses=poses,
         meta={
             "generator": "strep_core.sim.simulate_3d",
+            "sensor": {"kind": "depth", "axes": "opencv", "vertical_axis": [0.0, -1.0, 0.0]},
             "seed": int(seed),
             "room_seed": int(room_seed),
             "stride": int(stride),

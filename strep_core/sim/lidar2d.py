@@ -535,6 +535,7 @@ def simulate_2d(
         poses=g.se2_from_xytheta(xyt),
         meta={
             "generator": "strep_core.sim.simulate_2d",
+            "sensor": {"kind": "laser", "planar": True},
             "seed": int(seed),
             "map_seed": int(map_seed),
             "map_size": int(map_size),

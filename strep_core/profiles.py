@@ -1,0 +1,227 @@
+"""Settings chosen from the data: named profiles and the probe that picks one.
+
+A *profile* is a plain overlay of config values (like `strep_core.config.SCRATCH_PROFILE`): a
+run's fields left out take the profile's values, fields given keep theirs. `RunConfig.profile`
+names one, or ``"auto"`` (the default): then `probe` measures a few frame pairs of the sequence
+and picks one. `resolve` does either and records the choice and its reason in the config
+(``profile``, ``profile_reason``), so ``config.json`` says what was chosen and why, and, since a
+saved config holds every field, re-runs the same settings whatever the probe would say.
+
+Profiles (values in `PROFILES`; measurements in ``docs/design/profiles.md``):
+
+* ``laser-keyframes``: planar scans taken far apart (CARMEN keyframes: steps of 0.2 to 0.6 of the
+  scale, turns up to 80 degrees): the global scan matcher on every consecutive pair
+  (`strep_core.scanmatch`), and it also proposes and verifies the pose graph's loop closures;
+  each pair starts from the previous pair's motion, and along a corridor (a direction the matched
+  normals barely constrain) the translation stays at that guess (``icp_degeneracy``).
+* ``laser-dense``: planar scans a small step apart (DeepMapping's v1_pose0, the simulated 2D
+  lidar): plain coarse-to-fine ICP; the global matcher costs 4x and changes nothing there.
+* ``depth-turning``: a depth camera that turns in place by tens of degrees between frames (the
+  simulated AVD-like walks): ICP searches yaw about the camera's vertical axis in 30-degree
+  steps, finer stages, weak directions keep the guess, frame to frame.
+* ``depth-handheld``: a depth camera moved smoothly (7-Scenes): the defaults.
+* ``none``: the defaults, no probe.
+
+The probe (`probe`) reads what the reader recorded of the sensor (``Sequence.meta["sensor"]``:
+``kind`` ``"laser"`` or ``"depth"``, a laser's field of view, a camera's vertical axis in its own
+frame) and, on up to `PROBE_PAIRS` consecutive pairs spread over the sequence:
+
+* 2D: the heading change and step length of the global scan match of the pair (every heading,
+  +-1.5 scales), and the overlap at identity (share of points within 0.05 scale of the other scan);
+* 3D: the heading change that best overlaps the pair, turning about the camera's vertical axis
+  (every 5 degrees up to 60), and the overlap at identity.
+
+Rules: 2D is ``laser-keyframes`` when the median step exceeds `KEYFRAME_STEP` scales or the
+largest turn exceeds `KEYFRAME_TURN` degrees, else ``laser-dense``; 3D is ``depth-turning`` when a
+vertical axis is known and the largest turn reaches `TURNING_TURN` degrees, else
+``depth-handheld``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from strep_core.sequence import Sequence
+
+# Overlays per config section. Values are what the benchmark measured best (docs/design/profiles.md).
+PROFILES: dict[str, dict[str, dict[str, Any]]] = {
+    "laser-keyframes": {
+        "classical": {
+            "icp_global": "on",
+            "loop_global": "on",
+            "icp_motion_prior": "velocity",
+            "icp_degeneracy": 0.05,
+            "icp_global_yaw_window": 120.0,
+        }
+    },
+    "laser-dense": {"classical": {"icp_global": "off", "loop_global": "off"}},
+    "depth-turning": {
+        "classical": {
+            "icp_yaw_search": 30.0,
+            "icp_yaw_step": 30.0,
+            "icp_yaw_axis": (0.0, -1.0, 0.0),  # replaced by the sensor's own vertical axis when known
+            "icp_scales": [1.0, 0.5, 0.25],
+            "icp_degeneracy": 0.05,
+            "local_map_frames": 1,
+        }
+    },
+    "depth-handheld": {"classical": {}},
+    "none": {},
+}
+PROFILE_NAMES = tuple(PROFILES)
+
+PROBE_PAIRS = 12  # consecutive pairs measured, spread evenly over the sequence
+KEYFRAME_STEP = 0.15  # median step (fraction of the scale) above which 2D scans are keyframes
+KEYFRAME_TURN = 15.0  # largest turn (degrees) above which 2D scans are keyframes
+TURNING_TURN = 15.0  # largest turn (degrees) from which a depth camera is turning in place
+OVERLAP_RADIUS = 0.05  # overlap: share of points within this fraction of the scale
+
+
+@dataclass
+class ProbeResult:
+    """The probe's choice, why, and what it measured (degrees, fractions of the scale)."""
+
+    profile: str
+    reason: str
+    measures: dict[str, Any] = field(default_factory=dict)
+
+
+def sensor_of(seq: Sequence) -> dict[str, Any]:
+    """What the reader recorded of the sensor (``meta["sensor"]``), else what the dimension says:
+    a planar laser in 2D, an unknown 3D sensor."""
+    sensor = seq.meta.get("sensor") if isinstance(seq.meta, dict) else None
+    if isinstance(sensor, dict):
+        return sensor
+    return {"kind": "laser", "planar": True} if seq.dim == 2 else {"kind": "unknown"}
+
+
+def _pairs(k: int, n: int = PROBE_PAIRS) -> list[int]:
+    """Indices j of up to ``n`` pairs (j-1, j) spread evenly over ``k`` frames."""
+    if k < 2:
+        return []
+    return sorted({int(j) for j in np.linspace(1, k - 1, min(n, k - 1)).round()})
+
+
+def _overlap(source: np.ndarray, target_tree: Any, radius: float) -> float:
+    d, _ = target_tree.query(source, k=1, distance_upper_bound=radius)
+    return float(np.mean(np.isfinite(d)))
+
+
+def _subsample(points: np.ndarray, cell: float, limit: int = 3000) -> np.ndarray:
+    keys = np.floor(points / cell).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    out = points[np.sort(first)]
+    if len(out) > limit:
+        out = out[np.linspace(0, len(out) - 1, limit).astype(np.int64)]
+    return out
+
+
+def _measure_2d(seq: Sequence, s: float) -> dict[str, Any]:
+    from scipy.spatial import cKDTree
+
+    from strep_core.scanmatch import ScanMatcher, ScanMatchParams
+
+    params = ScanMatchParams(window=1.5 * s, resolution=0.025 * s, max_range=8.0 * s)
+    turns, steps, overlaps = [], [], []
+    assert seq.origins is not None
+    for j in _pairs(len(seq)):
+        src, tgt = seq.frames[j] - seq.origins[j], seq.frames[j - 1] - seq.origins[j - 1]
+        overlaps.append(_overlap(src, cKDTree(tgt), OVERLAP_RADIUS * s))
+        found = ScanMatcher(tgt, params).match(src, np.eye(3))
+        turns.append(abs(float(np.degrees(np.arctan2(found.pose[1, 0], found.pose[0, 0])))))
+        steps.append(float(np.linalg.norm(found.pose[:2, 2])) / s)
+    return {"pairs": len(turns), "turn_deg": turns, "step": steps, "overlap": overlaps}
+
+
+def _measure_3d(seq: Sequence, s: float, axis: np.ndarray | None) -> dict[str, Any]:
+    from scipy.spatial import cKDTree
+
+    from strep_core import geometry as g
+
+    turns, overlaps = [], []
+    yaws = np.radians(np.arange(-60, 61, 5))
+    assert seq.origins is not None
+    for j in _pairs(len(seq)):
+        src = _subsample(seq.frames[j] - seq.origins[j], 0.02 * s)
+        tree = cKDTree(_subsample(seq.frames[j - 1] - seq.origins[j - 1], 0.02 * s))
+        overlaps.append(_overlap(src, tree, OVERLAP_RADIUS * s))
+        if axis is None:
+            continue
+        scores = [_overlap(src @ g.so3_exp(axis * y).T, tree, OVERLAP_RADIUS * s) for y in yaws]
+        turns.append(abs(float(np.degrees(yaws[int(np.argmax(scores))]))))
+    return {"pairs": len(overlaps), "turn_deg": turns, "overlap": overlaps}
+
+
+def probe(seq: Sequence) -> ProbeResult:
+    """Measure a few consecutive pairs of ``seq`` and pick a profile (rules in the module doc)."""
+    from strep_core.registration import point_spacing
+
+    s = seq.scale()
+    sensor = sensor_of(seq)
+    measures: dict[str, Any] = {"sensor": sensor, "scale": s, "spacing": point_spacing(seq) / s}
+    if len(seq) < 2:
+        return ProbeResult("none", "a single frame: nothing to measure", measures)
+    if seq.dim == 2:
+        measures.update(_measure_2d(seq, s))
+        step, turn = float(np.median(measures["step"])), float(np.max(measures["turn_deg"]))
+        said = f"{measures['pairs']} pairs: median step {step:.2f} scale, largest turn {turn:.0f} deg"
+        if step > KEYFRAME_STEP or turn > KEYFRAME_TURN:
+            limits = f"above {KEYFRAME_STEP} scale or {KEYFRAME_TURN:.0f} deg"
+            return ProbeResult("laser-keyframes", f"planar laser, {said} ({limits})", measures)
+        limits = f"within {KEYFRAME_STEP} scale and {KEYFRAME_TURN:.0f} deg"
+        return ProbeResult("laser-dense", f"planar laser, {said} ({limits})", measures)
+    axis = sensor.get("vertical_axis")
+    unit_axis = None
+    if axis is not None:
+        a = np.asarray(axis, dtype=np.float64)
+        unit_axis = a / np.linalg.norm(a)
+    measures.update(_measure_3d(seq, s, unit_axis))
+    overlap = float(np.median(measures["overlap"]))
+    if unit_axis is None:
+        return ProbeResult(
+            "depth-handheld",
+            f"3D, no vertical axis known: no yaw search; {measures['pairs']} pairs, median overlap {overlap:.2f}",
+            measures,
+        )
+    turn = float(np.max(measures["turn_deg"]))
+    said = f"{measures['pairs']} pairs: largest turn {turn:.0f} deg, median overlap {overlap:.2f}"
+    kind = sensor.get("kind", "3D")
+    if turn >= TURNING_TURN:
+        return ProbeResult("depth-turning", f"{kind} sensor, {said} (>= {TURNING_TURN:.0f} deg)", measures)
+    return ProbeResult("depth-handheld", f"{kind} sensor, {said} (< {TURNING_TURN:.0f} deg)", measures)
+
+
+def overlay(name: str, seq: Sequence | None = None) -> dict[str, dict[str, Any]]:
+    """The overlay of profile ``name`` per section; ``depth-turning`` turns about the sensor's
+    own vertical axis when ``seq`` records one."""
+    out = {section: dict(values) for section, values in PROFILES[name].items()}
+    if name == "depth-turning" and seq is not None:
+        axis = sensor_of(seq).get("vertical_axis")
+        if axis is not None:
+            out["classical"]["icp_yaw_axis"] = tuple(float(c) for c in axis)
+    return out
+
+
+def resolve(config: Any, seq: Sequence) -> Any:
+    """``config`` (a `RunConfig`) with its profile applied: the probe's choice when ``profile`` is
+    ``"auto"``, else the named one; fields the config set keep their values. The returned config
+    names the profile and why (``profile_reason``)."""
+    from strep_core.config import _overlay
+
+    if config.profile == "auto":
+        try:
+            found = probe(seq)
+            name, reason = found.profile, f"probe: {found.reason}"
+        except Exception as exc:  # a probe that cannot measure (a few points a frame) is no error: defaults
+            name, reason = "none", f"probe failed ({type(exc).__name__}: {exc}): the defaults"
+    else:
+        name = config.profile
+        reason = config.profile_reason or "given"
+    update: dict[str, Any] = {"profile": name, "profile_reason": reason}
+    for section, values in overlay(name, seq).items():
+        current = getattr(config, section)
+        update[section] = type(current).model_validate(_overlay(current, values))
+    return config.model_copy(update=update)
