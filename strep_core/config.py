@@ -316,6 +316,17 @@ class LossConfig(_Section):
         default="truncated",
         description="none: squared distances (paper); truncated: min(d^2, threshold^2); huber",
     )
+    loop_robust: Literal["none", "truncated", "huber"] | None = Field(
+        default=None,
+        description="robust kernel of the spatial (loop) pairs; None: robust. A pair found by proximity overlaps "
+        "partly: truncated distances give the unmatched part no pull",
+    )
+    loop_weight: Literal["uniform", "span"] = Field(
+        default="uniform",
+        description="weight of a spatial pair's matches: uniform, or span = window / (frames between the pair), "
+        "so that a loop spanning n frames of a linked chain pulls each of its n increments no harder than a "
+        "temporal pair does (docs/design/from-scratch.md)",
+    )
     threshold: float = Field(default=0.02, gt=0, description="robust threshold (x scale; at the end if annealed)")
     threshold_start: float | None = Field(
         default=0.1, gt=0, description="robust threshold (x scale) at the start, annealed geometrically; None: constant"
@@ -369,7 +380,15 @@ class OptimConfig(_Section):
 # the sections are those of the pose-graph warm start.
 SCRATCH_PROFILE: dict[str, dict[str, Any]] = {
     "model": {"link_init": 1.0},
-    "loss": {"robust": "huber", "loop_radius": None},
+    # temporal pairs (Huber) form the chain; from halfway, loop pairs (truncated, weighted by
+    # window / span) close it: v1_pose0 1.75 -> 0.47 px (docs/design/from-scratch.md)
+    "loss": {
+        "robust": "huber",
+        "loop_radius": 0.5,
+        "loop_after": 0.5,
+        "loop_robust": "truncated",
+        "loop_weight": "span",
+    },
     "optim": {"lr_latent": 1e-2, "iterations": 1000},
 }
 

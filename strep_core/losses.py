@@ -170,6 +170,7 @@ def chamfer_matches(
     robust: Robust = "none",
     threshold: float = 1.0,
     normals: torch.Tensor | None = None,
+    weights: np.ndarray | None = None,
 ) -> torch.Tensor:
     """Mean robust squared distance between matched points (differentiable in ``points``).
 
@@ -192,13 +193,18 @@ def chamfer_matches(
     t = torch.as_tensor(idx, device=points.device)
     diff = points.index_select(0, s) - points.index_select(0, t)
     d2 = (diff * diff).sum(-1)
+    wt = None if weights is None else torch.as_tensor(weights, dtype=points.dtype, device=points.device)
+
+    def mean(x: torch.Tensor) -> torch.Tensor:
+        return x.mean() if wt is None else (x * wt).mean()
+
     if normals is None:
-        return robust_squared(d2, robust=robust, threshold=threshold).mean()
+        return mean(robust_squared(d2, robust=robust, threshold=threshold))
     r2 = (diff * normals.index_select(0, t)).sum(-1) ** 2
     if robust == "truncated":
         t2 = threshold * threshold
-        return torch.where(d2 < t2, torch.clamp(r2, max=t2), torch.full_like(r2, t2)).mean()
-    return robust_squared(r2, robust=robust, threshold=threshold).mean()
+        return mean(torch.where(d2 < t2, torch.clamp(r2, max=t2), torch.full_like(r2, t2)))
+    return mean(robust_squared(r2, robust=robust, threshold=threshold))
 
 
 def frame_normals(points: np.ndarray, *, k: int | None = None) -> np.ndarray:

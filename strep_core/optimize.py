@@ -29,7 +29,10 @@ docs/design/from-scratch.md for the start from identity):
   default in both starts, because measured it made every run worse (see the two designs).
 * From scratch (`SCRATCH_PROFILE`): ``w`` starts at 1 (the linked latents then form an
   integrator of per-frame increments), the latents learn at 1e-2 (the paper: 1e-4), Huber
-  distances, temporal pairs only.
+  distances between temporal pairs; from halfway, loop pairs close the chain with truncated
+  distances, each match weighted ``window / span``: a loop spanning n frames moves n
+  increments of the chain, and unweighted (Adam gives every increment a full step) it tore
+  v1_pose0 apart (2 px -> 106 px).
 * Adam, a cosine schedule down to ``final_lr_fraction``; a fixed strided subset of
   ``decoder_points`` points per frame feeds the decoder; ``points_per_frame`` random queries
   per frame and step.
@@ -510,13 +513,27 @@ def _optimize(
             clock.lap("chamfer")
             nn_idx, _ = losses.nearest_in_frame(world.detach().cpu().numpy(), owner, src, target)
             clock.lap("nearest_neighbours")
-            terms["chamfer"] = losses.chamfer_matches(
-                world,
-                src,
-                nn_idx,
-                robust=lc.robust,
-                threshold=threshold(it),
-                normals=normals,
+            # pairs found by proximity (farther apart in time than the window) may use another kernel
+            span = np.abs(frames_np[owner[src]] - frames_np[target])
+            spatial = span > lc.window
+            weight = np.minimum(1.0, lc.window / span) if lc.loop_weight == "span" else np.ones(len(span))
+            kernels = [(~spatial, lc.robust), (spatial, lc.loop_robust or lc.robust)]
+            terms["chamfer"] = sum(
+                (
+                    losses.chamfer_matches(
+                        world,
+                        src[sel],
+                        nn_idx[sel],
+                        robust=robust,
+                        threshold=threshold(it),
+                        normals=normals,
+                        weights=weight[sel],
+                    )
+                    * (sel.sum() / max(len(src), 1))
+                    for sel, robust in kernels
+                    if sel.any()
+                ),
+                start=world.sum() * 0.0,
             )
             clock.lap("chamfer")
         if lc.occupancy_weight > 0:

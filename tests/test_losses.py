@@ -97,6 +97,16 @@ def test_chamfer_gradient_reaches_poses() -> None:
     assert torch.allclose(xi.grad[0, :2], -xi.grad[1, :2], atol=1e-9)
 
 
+def test_weighted_matches_are_a_weighted_mean() -> None:
+    """Weights scale each match's robust cost: two matches 1 and 2 apart, weights 1 and 0.25."""
+    pts = torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 5.0], [2.0, 5.0]])
+    src, idx = np.array([0, 2]), np.array([1, 3])
+    plain = losses.chamfer_matches(pts, src, idx)
+    weighted = losses.chamfer_matches(pts, src, idx, weights=np.array([1.0, 0.25]))
+    assert float(plain) == pytest.approx((1.0 + 4.0) / 2)
+    assert float(weighted) == pytest.approx((1.0 + 0.25 * 4.0) / 2)
+
+
 def test_robust_forms() -> None:
     d2 = torch.tensor([0.0, 0.25, 4.0])
     assert losses.robust_squared(d2, robust="none", threshold=1.0).tolist() == [0.0, 0.25, 4.0]
