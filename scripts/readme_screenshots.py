@@ -1,7 +1,7 @@
 """The README's screenshots from a real run: the page's default comparison, start to end.
 
 Starts ``python -m app.server`` (viewer on) with a temporary data folder, opens the page in
-Debian's chromium (Playwright), presses Start without touching anything (sim2d-small, strep vs
+Debian's chromium (Playwright), presses Start without touching anything (sim2d, strep vs
 strep-nolink, from scratch, the default iterations), waits for both jobs, and writes
 ``page.png`` and ``viewer.png`` into the folder given (docs/screenshots for the README). Every
 request to another host is blocked and listed. About 4 minutes on 2 busy cores.

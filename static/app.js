@@ -286,8 +286,9 @@ async function loadSequences(selectId) {
   sel.innerHTML = data
     .map((s) => `<option value="${esc(s.id)}">${esc(s.name)} (${s.dims}D, ${s.frames} frames${s.source === "upload" ? ", uploaded" : ""})</option>`)
     .join("");
-  // the first preset: the small 2D sample, from scratch, strep vs strep-nolink (about a minute)
-  const preset = data.find((s) => s.id === "sample:sim2d-small");
+  // the first preset: the 256-frame 2D sample, from scratch, strep vs strep-nolink (a few minutes):
+  // there the link decides the outcome (0.45 px against 134 px, docs/design/from-scratch.md)
+  const preset = data.find((s) => s.id === "sample:sim2d");
   if (selectId) sel.value = selectId;
   else if (preset) sel.value = preset.id;
   showSequence();

@@ -43,7 +43,7 @@ BROWSER_ARGS = [
     "--enable-unsafe-swiftshader",
     "--disable-background-networking",
 ]
-SAMPLE = "sample:sim2d-small"
+SAMPLE = "sample:sim2d"
 ITERATIONS = 30  # the page's default (1000 from scratch) takes minutes on 2 cores
 SERIES = [(0x2F, 0x6F, 0xDE), (0xE6, 0x7E, 0x22)]  # the page's first two curve colours (COLORS in app.js)
 FINAL = {"succeeded", "failed", "cancelled", "interrupted"}
@@ -231,7 +231,7 @@ def edge_pixels(rgb: np.ndarray, width: int) -> tuple[int, int]:
 
 def test_newcomer_path_offline(server: Server, browser: Browser, tmp_path: Path) -> None:
     """The path a newcomer takes, with every request that would leave the machine blocked and
-    recorded: the page offers sim2d-small, strep vs strep-nolink from scratch; Start; both
+    recorded: the page offers sim2d, strep vs strep-nolink from scratch; Start; both
     curves from iteration 0 with a legend and a stage per job; the viewer shows both maps whole;
     the comparison's .rrd downloads; /docs renders. No request left the machine."""
     shots = Path(os.environ.get("STREP_SCREENSHOTS", tmp_path))
@@ -357,7 +357,7 @@ def test_newcomer_path_offline(server: Server, browser: Browser, tmp_path: Path)
     print(f"viewer coloured pixels: empty {before}, comparison {after}; at the canvas's edges {left}, {right}")
     assert after > before + 5000, (before, after)
     assert left < 20 and right < 20, (left, right)  # before: the right map ran under the panel
-    assert viewer.get_by_text(f"sim2d-small: strep vs strep-nolink [{cmp_id}]").count() >= 1
+    assert viewer.get_by_text(f"sim2d: strep vs strep-nolink [{cmp_id}]").count() >= 1
     slider = viewer.evaluate(
         """() => {
           const label = [...document.querySelectorAll('label, div, span')]
