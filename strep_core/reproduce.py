@@ -1163,7 +1163,8 @@ def build_report(
         + SETTINGS["cold"][1]
         + ". Warm runs predict corrections on top of the pose graph with a truncated point-to-plane Chamfer "
         "loss; cold runs are the paper's setting, with its departures: w starts at 1, the latents learn at "
-        "1e-2 (paper 1e-4), Chamfer is Huber over temporal neighbours only "
+        "1e-2 (paper 1e-4), Chamfer is Huber over temporal neighbours and, from halfway, truncated over loop "
+        "pairs (frames close in the current estimate, far in time; each match weighted window / span) "
         "(`strep_core.config.SCRATCH_PROFILE`, measured in `docs/design/from-scratch.md`).",
         "- The occupancy (global) loss weight is 0 by default in this implementation: with it every measured run "
         "was worse, warm and from scratch (`docs/design/from-scratch.md`). So the occupancy MLP is not trained, "
