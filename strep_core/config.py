@@ -200,6 +200,14 @@ class ClassicalConfig(_Section):
     loop_global_candidates: int = Field(
         default=3, ge=0, le=100, description="global loop closures: earlier frames tried per frame, nearest first"
     )
+    loop_global_turn: float = Field(
+        default=45.0,
+        gt=0,
+        le=180,
+        description="global loop closures: reject a loop whose relative heading differs from the chain's estimate by "
+        "more than this many degrees (corridors look alike after a half turn, square rooms after a quarter turn; "
+        "180: off); docs/design/scan-matching.md, third part",
+    )
     # ---- KISS-ICP
     kiss_voxel: float | None = Field(
         default=None, gt=0, description="KISS-ICP voxel size (sequence unit); None: from data"

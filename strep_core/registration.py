@@ -841,6 +841,7 @@ def global_loop_closures(
     max_per_frame: int,
     every: int = 1,
     scales: tuple[float, ...] | None = None,
+    max_turn: float = float(np.pi),
     on_frame: Callable[[int], None] | None = None,
 ) -> tuple[list[LoopClosure], int]:
     """Loop closures of a 2D sequence found by the global scan matcher (`strep_core.scanmatch`).
@@ -853,6 +854,11 @@ def global_loop_closures(
     (``scales``). A candidate is kept when the matcher scores the refined pose at least
     ``min_score`` in both directions (j in i's field and i in j's: a scan that sees only part of
     the other cannot pass by overlapping a wall) and ICP matches ``min_fitness`` of j's points.
+    The match searches every heading, but a loop whose relative heading differs from the chain's
+    estimate by more than ``max_turn`` (radians) is rejected: a corridor looks the same after a
+    half turn and a square room after a quarter turn, and a match that turns the chain by one of
+    these is an ambiguous place rather than a correction of the chain's heading
+    (docs/design/scan-matching.md, third part).
 
     Returns:
         The loop closures and the number of candidates tried.
@@ -889,12 +895,14 @@ def global_loop_closures(
             guess = from_se3(g.relative(poses3[i], poses3[j])[None], 2)[0]
             matcher = ScanMatcher(pts[i], gm, center=guess[:2, 2])
             match = matcher.match(pts[j], guess)
-            if match.score < min_score:
+            if match.score < min_score or _turn(guess, match.pose) > max_turn:
                 continue
             res = _register(clouds[j], clouds[i], g.to_se3(match.pose), params, stages, ())
             if res.kept_guess or res.fitness < min_fitness:
                 continue
             pose2 = from_se3(res.transformation[None], 2)[0]
+            if _turn(guess, pose2) > max_turn:
+                continue
             forward = matcher.evaluate(pts[j], pose2)
             backward = ScanMatcher(pts[j], gm, center=g.inverse(pose2)[:2, 2]).evaluate(pts[i], g.inverse(pose2))
             if min(forward, backward) < min_score:
@@ -903,3 +911,9 @@ def global_loop_closures(
         if on_frame is not None:
             on_frame(j)
     return found, tried
+
+
+def _turn(a: np.ndarray, b: np.ndarray) -> float:
+    """The heading difference (radians, 0 to pi) between two ``(3, 3)`` SE(2) poses."""
+    d = g.relative(a, b)
+    return abs(float(np.arctan2(d[1, 0], d[0, 0])))

@@ -17,7 +17,8 @@ characteristic length ``s = Sequence.scale()`` (median point range; 125 px on v1
   (``loop_global``, on in the ``laser-keyframes`` profile) the global scan matcher proposes and
   verifies them instead (`strep_core.registration.global_loop_closures`: the 3 nearest earlier
   keyframes within ``3 s`` of every 2nd keyframe, matched over every heading, kept at a score of
-  0.6 both ways), and odometry edges may then be pruned by the line process too.
+  0.6 both ways and a heading within 45 degrees of the chain's, ``loop_global_turn``), and
+  odometry edges may then be pruned by the line process too.
 * ``kiss``: KISS-ICP voxel ``6.5 h``, ``h`` the median nearest-neighbour spacing of the points
   within a frame (`strep_core.registration.point_spacing`): a voxel must gather several points
   of one scan, so sparse 2D scan lines (h = 3 px on v1_pose0: voxel 20 px, 0.16 s) need far
@@ -202,6 +203,7 @@ def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
                 max_per_frame=cfg.loop_global_candidates,
                 every=cfg.loop_global_every,
                 scales=loop_scales,
+                max_turn=float(np.radians(cfg.loop_global_turn)),
                 on_frame=lambda j: progress.step(k_frames + j, odo.poses, k_frames),
             )
             for loop in loops:
