@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from app.viewer import ViewerServer
-from app.viewer.scene import History, Snapshot, poses_to_matrices, rotations_to_wxyz, stage_line
+from app.viewer.scene import History, Snapshot, display_anchor, poses_to_matrices, rotations_to_wxyz, stage_line
 from app.viewer.server import CHART_INTERVAL, loss_exponent
 from strep_core import geometry as g
 from strep_core.config import RunConfig
@@ -422,3 +422,33 @@ def test_another_run_starts_live_with_its_own_iteration(viewer, seq, icp_events)
     assert state["selected"] == "slider-b" and state["live"] and not state["playing"]
     assert viewer.controls["iteration"].value == viewer.jobs()["slider-b"]["iteration"]
     viewer.set_replay(live=True)
+
+
+def test_a_map_spread_beyond_the_ground_truth_pushes_its_neighbour_away(viewer, seq) -> None:
+    """From scratch a failing run's map is far wider than the ground truth's: its panel grows
+    and the next one moves beyond it (the README's no-link panel lay under strep's)."""
+    gt = seq.poses.copy()
+    spread = gt.copy()
+    dx = gt[:, :2, 2] - gt[0, :2, 2]
+    factor = 10.0 if dx[:, 0].max() >= -dx[:, 0].min() else -10.0  # steps 10x longer, towards +x
+    spread[:, :2, 2] = factor * dx + gt[0, :2, 2]
+    for job_id, poses in (("spread", spread), ("right", gt)):
+        sink = viewer.sink(job_id, job_id, seq, group="spread-group", select=True)
+        sink.emit(IterationEvent(iteration=1, total=1, elapsed=0.1, poses=pose_list(g.pose_to_vector(poses))))
+    assert viewer.wait_idle(5) and viewer.wait_idle(5)
+    jobs = viewer.jobs()
+    a, b = jobs["spread"]["key"], jobs["right"]["key"]
+
+    def world_x(key: str, poses: np.ndarray) -> np.ndarray:
+        """x of the map as drawn: panel offset + anchor + frame poses, as the viewer places it."""
+        panel = np.asarray(viewer.scene_node(f"/jobs/{key}").position)
+        est = poses_to_matrices(pose_list(g.pose_to_vector(poses)))
+        anchor = display_anchor(est, poses_to_matrices(pose_list(g.pose_to_vector(gt))))
+        shown = anchor[None] @ est
+        pts = np.concatenate([f @ p[:2, :2].T + p[:2, 3] for f, p in zip(seq.frames, shown, strict=True)])
+        return pts[:, 0] + panel[0]
+
+    xa, xb = world_x(a, spread), world_x(b, gt)
+    gt_width = xb.max() - xb.min()
+    assert xa.max() - xa.min() > 2.0 * gt_width  # the spread map really is wider
+    assert xa.max() < xb.min()  # ... and lies wholly left of its neighbour

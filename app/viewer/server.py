@@ -229,7 +229,7 @@ class ViewerServer:
         self._stopping = False
         self._busy = False
         self._closed = False
-        self._framed: tuple[str, bool] | None = None  # (group, all extents known) last framed
+        self._framed: tuple[str, bool, float] | None = None  # (group, extents known, their width) framed
         self._unframed_clients: set[int] = set()  # tabs whose canvas size just became known
 
         self.server = viser.ViserServer(host=host, port=port, verbose=verbose)
@@ -825,9 +825,9 @@ class ViewerServer:
         job.frame_nodes.clear()
 
     def _box_of(self, job: _Job) -> tuple[np.ndarray, np.ndarray]:
-        """A panel's extent: the ground-truth map when known (stable while the estimate moves),
-        else the latest estimated map (a unit box before the first poses)."""
-        box = job.scene.gt_bbox() or job.box
+        """A panel's extent: the ground-truth map and the estimated map as last laid out
+        (a unit box before either is known)."""
+        box = union_bbox(job.scene.gt_bbox(), job.box)
         return box if box is not None else (np.zeros(3), np.ones(3))
 
     def _members(self, group: str) -> list[_Job]:
@@ -842,11 +842,15 @@ class ViewerServer:
             if job.built:
                 job.nodes[f"/jobs/{job.key}"].position = off
                 job.nodes[f"/jobs/{job.key}/label"].position = label_position(box)
-        # frame the camera once per shown group, when every panel knows its extent
+        # frame the camera once per shown group when every panel knows its extent, and again
+        # only when the panels grew by a fifth since (a failing run spreading its map)
         measured = all(j.box is not None or j.scene.ground_truth is not None for j in members)
-        if members and group == self._selected and (group, measured) != self._framed:
+        span = sum(float(hi[0] - lo[0]) for lo, hi in boxes)
+        framed = self._framed
+        grown = framed is not None and framed[:2] == (group, measured) and span > 1.2 * framed[2]
+        if members and group == self._selected and (framed is None or framed[:2] != (group, measured) or grown):
             self._frame_camera(group)
-            self._framed = (group, measured)
+            self._framed = (group, measured, span)
 
     def _apply_ui(self, ui: dict[str, Any], jobs: list[_Job]) -> None:
         selected = ui["selected"]
@@ -899,8 +903,9 @@ class ViewerServer:
         if not members:
             return
         box = None
-        for job in members:  # the panels and whatever the estimates show beyond them
-            for lo, hi in (self._box_of(job), job.shown_box or self._box_of(job)):
+        for job in members:  # the ground truth and the estimate as shown now (not as laid out)
+            shown = job.shown_box or self._box_of(job)
+            for lo, hi in (b for b in (job.scene.gt_bbox(), shown) if b is not None):
                 box = union_bbox(box, (lo + job.offset, hi + job.offset))
         assert box is not None
         size = float(max(np.max(box[1] - box[0]), 1e-6))
@@ -956,13 +961,13 @@ class ViewerServer:
             axes.visible = True
             box = bbox(job.scene.fuse(shown, max_points=4096))
             job.shown_box = box  # from scratch the estimate spreads beyond the ground truth's box
-            if job.scene.ground_truth is None:  # the panel's extent follows the estimate
-                old = None if job.box is None else float(job.box[1][0] - job.box[0][0])
-                width = float(box[1][0] - box[0][0])
-                if old is None or not 0.7 * old <= width <= 1.05 * old:  # hysteresis: rare re-layouts
-                    job.box = box
-                    with self._lock:
-                        self._layout_dirty.add(job.group)
+            # the panel's extent follows the estimate too (a failing run's map can be twice the
+            # ground truth's), with hysteresis so that re-layouts stay rare
+            size, old = box[1][:2] - box[0][:2], None if job.box is None else job.box[1][:2] - job.box[0][:2]
+            if old is None or not np.all((0.7 * old <= size) & (size <= 1.05 * old)):
+                job.box = box
+                with self._lock:
+                    self._layout_dirty.add(job.group)
         self._update_text(job, snap)
         now = time.monotonic()
         if now - job.chart_pushed >= CHART_INTERVAL or job.finished or snap is not job.history.latest:
