@@ -126,6 +126,14 @@ class ClassicalConfig(_Section):
         description="global scan match: score lost (mean likelihood, 0 to 1) by a translation one scale away "
         "from the previous pair's (quadratic): breaks the ties of corridors in favour of steady motion; 0: none",
     )
+    icp_global_prior_stop: float = Field(
+        default=0.1,
+        ge=0,
+        le=10,
+        description="global scan match: a step prior (median of the last steps) shorter than this fraction of the "
+        "scale is a stop (turns in place): the median of the last longer steps replaces it "
+        "(docs/design/scan-matching.md, fourth part); 0: never",
+    )
     icp_degeneracy: float = Field(
         default=0.0,
         ge=0,

@@ -90,6 +90,8 @@ class RegistrationParams:
         velocity_prior: incremental ICP starts each pair from the previous pair's estimated
             motion (constant velocity) instead of the initial guess's relative motion.
         global_match: 2D: also start from a global scan match (see `register_with`).
+        prior_stop: a global match's step prior shorter than this (sequence unit) is a stop:
+            the median of the last longer steps replaces it (`_step_prior`); 0: never.
     """
 
     dim: int
@@ -110,6 +112,7 @@ class RegistrationParams:
     correlative: CorrelativeParams | None = None
     velocity_prior: bool = False
     global_match: ScanMatchParams | None = None
+    prior_stop: float = 0.0
 
     @property
     def planar(self) -> bool:
@@ -168,6 +171,7 @@ def resolve_params(seq: Sequence, cfg: ClassicalConfig) -> RegistrationParams:
         correlative=correlative,
         velocity_prior=cfg.icp_motion_prior == "velocity",
         global_match=global_match,
+        prior_stop=cfg.icp_global_prior_stop * s,
     )
 
 
@@ -763,7 +767,7 @@ def incremental_icp(
             target = clouds[k - 1]
             if params.local_map > 1:
                 target = _local_map(clouds, poses3, k, params)
-            prior = _step_prior(pairs)
+            prior = _step_prior(pairs, stop=params.prior_stop)
             res = register_with(clouds[k], target, guess, params, prior=prior)
             pairs.append(res)
             poses3[k] = poses3[k - 1] @ res.transformation
@@ -775,15 +779,28 @@ def incremental_icp(
     return IncrementalResult(poses=poses, pairs=pairs, clouds=clouds, seconds=time.perf_counter() - started)
 
 
-def _step_prior(pairs: list[PairResult], n: int = 5) -> np.ndarray | None:
+def _step_prior(pairs: list[PairResult], n: int = 5, *, stop: float = 0.0) -> np.ndarray | None:
     """The expected next step: the median translation of the last ``n`` pairs (each in its own
     frame), no turn; ``None`` before the first pair. Keyframes are taken at steady spacing, and a
-    median forgets one wrong step."""
+    median forgets one wrong step.
+
+    When that median is a stop (shorter than ``stop``: most recent keyframes were turns in place),
+    the median of the last ``n`` longer steps is taken instead, going back as far as needed: after
+    a stop to turn, the sensor moves on at its usual step, and a prior of no motion pulls the
+    matcher back along a corridor (docs/design/scan-matching.md, fourth part)."""
     if not pairs:
         return None
-    steps = np.stack([p.transformation for p in pairs[-n:]])
+
+    def median(chosen: list[PairResult]) -> np.ndarray:
+        return np.median(np.stack([p.transformation[:3, 3] for p in chosen]), axis=0)
+
+    t = median(pairs[-n:])
+    if stop > 0 and np.linalg.norm(t) < stop:
+        moving = [p for p in pairs if np.linalg.norm(p.transformation[:3, 3]) >= stop]
+        if moving:
+            t = median(moving[-n:])
     out = np.eye(4)
-    out[:3, 3] = np.median(steps[:, :3, 3], axis=0)
+    out[:3, 3] = t
     return out
 
 
