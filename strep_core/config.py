@@ -308,6 +308,13 @@ class LossConfig(_Section):
 
     chamfer_weight: float = Field(default=1.0, ge=0)
     occupancy_weight: float = Field(default=0.0, ge=0)
+    weak_weight: float = Field(
+        default=0.0,
+        ge=0,
+        description="penalty on a frame's translation correction (scale units, squared) along the directions its "
+        "own normals constrain weakly, 1 - eigenvalue / largest of their scatter (a corridor's axis); 0: off "
+        "(docs/design/warm-start.md, weak directions)",
+    )
     window: int = Field(default=2, ge=1, le=64, description="Chamfer to neighbours within +-window frames")
     loop_radius: float | None = Field(
         default=0.5,

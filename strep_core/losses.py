@@ -207,6 +207,19 @@ def chamfer_matches(
     return mean(robust_squared(r2, robust=robust, threshold=threshold))
 
 
+def weak_directions(normals: np.ndarray) -> np.ndarray:
+    """``(D, D)`` penalty matrix of a frame's unit ``normals (N, D)``, in its own axes.
+
+    ``I - C / lambda_max(C)`` with ``C`` the normals' mean outer product: zero along the direction
+    they constrain most, near one along a direction none of them faces (a corridor's axis).
+    A frame without normals gets the identity (nothing constrains it).
+    """
+    d = normals.shape[1]
+    c = normals.T @ normals / max(len(normals), 1)
+    top = float(np.linalg.eigvalsh(c)[-1])
+    return np.eye(d) if top <= 1e-12 else np.eye(d) - c / top
+
+
 def frame_normals(points: np.ndarray, *, k: int | None = None) -> np.ndarray:
     """Unit normals ``(N, D)`` of a frame's points ``(N, D)`` by PCA of ``k`` nearest neighbours.
 

@@ -5,6 +5,7 @@
 closures; ``start="scratch"``: identity, the paper's setting), minimising with Adam
 
     L = chamfer_weight * Chamfer(frames, neighbours) + occupancy_weight * occupancy BCE
+        + weak_weight * mean_k  dt_k^T A_k dt_k   (translation corrections along weak directions)
 
 over poses ``pose_k = correction_k (x) init_k`` decoded by the networks. It reports only
 through ``ctx.sink`` (an `IterationEvent` every ``optim.event_interval`` iterations, with the
@@ -25,6 +26,9 @@ docs/design/from-scratch.md for the start from identity):
   iterations, from ``loop_after * iterations`` on); truncated or Huber distances, point-to-plane
   by default, the threshold annealed from ``threshold_start`` to ``threshold``. The paper's
   plain squared distances diverge under partial overlap (a departure, docs/reproduction.md).
+* ``weak_weight``: a penalty on each frame's translation correction along the directions its own
+  normals constrain weakly (a corridor's axis), which the Chamfer terms cannot see; off by
+  default, on in the ``laser-keyframes`` profile (docs/design/warm-start.md, weak directions).
 * Occupancy BCE (the paper's global term) is weighted by ``occupancy_weight``; off by
   default in both starts, because measured it made every run worse (see the two designs).
 * From scratch (`SCRATCH_PROFILE`): ``w`` starts at 1 (the linked latents then form an
@@ -443,6 +447,7 @@ def _optimize(
         return lc.threshold_start * (lc.threshold / lc.threshold_start) ** (it / (total - 1))
 
     current = prep.init.clone()  # (K, D+1, D+1) latest normalised poses of every frame
+    weak = _weak_matrices(prep) if lc.weak_weight > 0 else None
     base_lrs = [grp["lr"] for grp in optimizer.param_groups] if optimizer else []
     schedule = batch_schedule(k, oc.batch_frames, lc.window)
     pairs_all = np.zeros((0, 2), dtype=np.int64)
@@ -536,6 +541,11 @@ def _optimize(
                 start=world.sum() * 0.0,
             )
             clock.lap("chamfer")
+        if lc.weak_weight > 0:
+            # translation corrections along directions the frame's normals barely constrain
+            assert weak is not None
+            delta = poses[:, :d, d] - prep.init.index_select(0, frames_t)[:, :d, d]
+            terms["weak"] = torch.einsum("bi,bij,bj->b", delta, weak.index_select(0, frames_t), delta).mean()
         if lc.occupancy_weight > 0:
             # during the warm-up the map learns from the current poses without moving them
             warm = it < lc.occupancy_warmup
@@ -557,7 +567,11 @@ def _optimize(
         loss = sum(
             (
                 w * terms[n]
-                for n, w in (("chamfer", lc.chamfer_weight), ("occupancy", lc.occupancy_weight))
+                for n, w in (
+                    ("chamfer", lc.chamfer_weight),
+                    ("occupancy", lc.occupancy_weight),
+                    ("weak", lc.weak_weight),
+                )
                 if n in terms
             ),
             start=poses.sum() * 0.0,
@@ -598,6 +612,25 @@ def _optimize(
         artifacts={"model": _artifact(model, prep, model_cfg)},
         timings=timings,
     )
+
+
+def _weak_matrices(prep: Prepared) -> torch.Tensor:
+    """``(K, D, D)`` world-axis penalty matrices of the frames' weak directions at their warm-start
+    rotations (`losses.weak_directions`); normals by PCA when the Chamfer term computed none."""
+    d = prep.dim
+    points = prep.points.detach().cpu().numpy()
+    normals = None if prep.normals is None else prep.normals.detach().cpu().numpy()
+    local = np.stack(
+        [
+            losses.weak_directions(
+                normals[a:b] if normals is not None else losses.frame_normals(points[a:b].astype(np.float64))
+            )
+            for a, b in zip(prep.starts[:-1], prep.starts[1:], strict=True)
+        ]
+    )
+    rot = prep.init[:, :d, :d].detach().cpu().double().numpy()
+    world = np.einsum("kij,kjl,kml->kim", rot, local, rot)
+    return torch.as_tensor(world, dtype=prep.init.dtype, device=prep.init.device)
 
 
 def _temporal_pairs(frames: np.ndarray, window: int) -> np.ndarray:

@@ -149,3 +149,13 @@ def test_occupancy_bce_falls_when_the_mlp_learns_a_fixed_map() -> None:
         values.append(loss.item())
     assert values[0] > 1.2  # about 2 ln 2 for an untrained network
     assert np.mean(values[-10:]) < 0.6 * values[0]
+
+
+def test_weak_directions_penalise_a_corridor_axis_only() -> None:
+    """Two walls along x (normals all along y): moving along x costs fully, across nothing; a
+    square room is constrained both ways; a frame without normals is free both ways."""
+    corridor = np.tile([0.0, 1.0], (50, 1))
+    np.testing.assert_allclose(losses.weak_directions(corridor), np.diag([1.0, 0.0]), atol=1e-12)
+    room = np.r_[np.tile([1.0, 0.0], (25, 1)), np.tile([0.0, -1.0], (25, 1))]
+    np.testing.assert_allclose(losses.weak_directions(room), np.zeros((2, 2)), atol=1e-12)
+    np.testing.assert_allclose(losses.weak_directions(np.zeros((3, 2))), np.eye(2))
