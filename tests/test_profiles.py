@@ -126,3 +126,9 @@ def test_strep_run_takes_a_profile_and_config_json_records_it(tmp_path: Path) ->
     assert main([*argv]) == 0  # auto: the probe chooses and says why
     saved = json.loads((out / "config.json").read_text())
     assert saved["profile"] in profiles.PROFILE_NAMES and saved["profile_reason"].startswith("probe: ")
+
+
+def test_laser_keyframes_penalises_corrections_along_weak_directions() -> None:
+    """The learned methods on CARMEN keyframes hold corridor slides (docs/design/warm-start.md)."""
+    assert profiles.PROFILES["laser-keyframes"]["loss"]["weak_weight"] > 0
+    assert RunConfig().loss.weak_weight == 0  # other data: unchanged
