@@ -76,7 +76,9 @@ def main() -> None:
             rows.append(row)
             with log.open("a") as fh:
                 fh.write(json.dumps(row, default=str) + "\n")
-            print(f"{row['case']} {row['method']}: ATE {row.get('ate')} in {row.get('wall_seconds', 0):.0f} s", flush=True)
+            print(
+                f"{row['case']} {row['method']}: ATE {row.get('ate')} in {row.get('wall_seconds', 0):.0f} s", flush=True
+            )
     summary = summarize(rows, methods)
     report = {
         "machine": machine_info(),
