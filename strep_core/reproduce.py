@@ -1161,7 +1161,7 @@ def build_report(
         + SETTINGS["warm"][1]
         + "; **cold** = "
         + SETTINGS["cold"][1]
-        + ". Warm runs predict corrections on top of the pose graph with a truncated point-to-plane Chamfer "
+        + ". Warm runs predict corrections on top of that start with a truncated point-to-plane Chamfer "
         "loss; cold runs are the paper's setting, with its departures: w starts at 1, the latents learn at "
         "1e-2 (paper 1e-4), Chamfer is Huber over temporal neighbours and, from halfway, truncated over loop "
         "pairs (frames close in the current estimate, far in time; each match weighted window / span) "
