@@ -796,9 +796,14 @@ def _step_prior(pairs: list[PairResult], n: int = 5, *, stop: float = 0.0) -> np
 
     t = median(pairs[-n:])
     if stop > 0 and np.linalg.norm(t) < stop:
-        moving = [p for p in pairs if np.linalg.norm(p.transformation[:3, 3]) >= stop]
+        moving = []  # the last n longer steps, newest first: a scan back, not over the whole log
+        for p in reversed(pairs):
+            if np.linalg.norm(p.transformation[:3, 3]) >= stop:
+                moving.append(p)
+                if len(moving) == n:
+                    break
         if moving:
-            t = median(moving[-n:])
+            t = median(moving)
     out = np.eye(4)
     out[:3, 3] = t
     return out
@@ -912,13 +917,13 @@ def global_loop_closures(
             guess = from_se3(g.relative(poses3[i], poses3[j])[None], 2)[0]
             matcher = ScanMatcher(pts[i], gm, center=guess[:2, 2])
             match = matcher.match(pts[j], guess)
-            if match.score < min_score or _turn(guess, match.pose) > max_turn:
+            if match.score < min_score or float(g.rotation_angle(g.relative(guess, match.pose))) > max_turn:
                 continue
             res = _register(clouds[j], clouds[i], g.to_se3(match.pose), params, stages, ())
             if res.kept_guess or res.fitness < min_fitness:
                 continue
             pose2 = from_se3(res.transformation[None], 2)[0]
-            if _turn(guess, pose2) > max_turn:
+            if float(g.rotation_angle(g.relative(guess, pose2))) > max_turn:
                 continue
             forward = matcher.evaluate(pts[j], pose2)
             backward = ScanMatcher(pts[j], gm, center=g.inverse(pose2)[:2, 2]).evaluate(pts[i], g.inverse(pose2))
@@ -928,9 +933,3 @@ def global_loop_closures(
         if on_frame is not None:
             on_frame(j)
     return found, tried
-
-
-def _turn(a: np.ndarray, b: np.ndarray) -> float:
-    """The heading difference (radians, 0 to pi) between two ``(3, 3)`` SE(2) poses."""
-    d = g.relative(a, b)
-    return abs(float(np.arctan2(d[1, 0], d[0, 0])))
