@@ -521,7 +521,7 @@ def _optimize(
             # pairs found by proximity (farther apart in time than the window) may use another kernel
             span = np.abs(frames_np[owner[src]] - frames_np[target])
             spatial = span > lc.window
-            weight = np.minimum(1.0, lc.window / span) if lc.loop_weight == "span" else np.ones(len(span))
+            weight = np.minimum(1.0, lc.window / span) if lc.loop_weight == "span" else None
             kernels = [(~spatial, lc.robust), (spatial, lc.loop_robust or lc.robust)]
             terms["chamfer"] = sum(
                 (
@@ -532,7 +532,7 @@ def _optimize(
                         robust=robust,
                         threshold=threshold(it),
                         normals=normals,
-                        weights=weight[sel],
+                        weights=None if weight is None else weight[sel],
                     )
                     * (sel.sum() / max(len(src), 1))
                     for sel, robust in kernels
