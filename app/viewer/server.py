@@ -847,8 +847,8 @@ class ViewerServer:
         measured = all(j.box is not None or j.scene.ground_truth is not None for j in members)
         span = sum(float(hi[0] - lo[0]) for lo, hi in boxes)
         framed = self._framed
-        grown = framed is not None and framed[:2] == (group, measured) and span > 1.2 * framed[2]
-        if members and group == self._selected and (framed is None or framed[:2] != (group, measured) or grown):
+        stale = framed is None or framed[:2] != (group, measured) or span > 1.2 * framed[2]
+        if members and group == self._selected and stale:
             self._frame_camera(group)
             self._framed = (group, measured, span)
 
