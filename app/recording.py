@@ -65,11 +65,10 @@ from app.viewer.scene import (
     label_position,
     layout_panels,
     poses_to_matrices,
-    progress_events,
     safe_name,
     union_bbox,
 )
-from strep_core.events import Event, ResultEvent, StageEvent, StartEvent
+from strep_core.events import Event, ResultEvent, StageEvent, StartEvent, progress_events
 from strep_core.sequence import Sequence
 
 log = logging.getLogger(__name__)

@@ -11,13 +11,14 @@ import numpy as np
 import pytest
 
 from app.viewer import ViewerServer
-from app.viewer.scene import History, Snapshot, display_anchor, poses_to_matrices, rotations_to_wxyz, stage_line
-from app.viewer.server import CHART_INTERVAL, loss_exponent
+from app.viewer.chart import CHART_INTERVAL, loss_exponent
+from app.viewer.scene import display_anchor, poses_to_matrices, rotations_to_wxyz
 from strep_core import geometry as g
 from strep_core.config import RunConfig
 from strep_core.events import IterationEvent, ListSink, MultiSink, StageEvent, StartEvent, pose_list
 from strep_core.methods import run
 from strep_core.pipeline import load_input
+from strep_core.runstate import History, Snapshot, stage_line
 
 MAX_POINTS = 8_000
 

@@ -24,7 +24,7 @@ from typing import Literal
 from app.core.config import Settings
 from app.services.loader import SequenceLoader
 from app.store import ACTIVE_STATUSES, Store, StoredEvent
-from app.viewer.scene import PROGRESS_KINDS
+from strep_core.events import PROGRESS_KINDS
 
 log = logging.getLogger("strep.service")
 
