@@ -57,7 +57,6 @@ class Pusher:
     _framed: tuple[str, bool, float] | None
     _unframed_clients: set[int]
 
-    # ---- the pusher ------------------------------------------------------------------------
     def _run(self) -> None:
         while True:
             with self._lock:
