@@ -453,3 +453,22 @@ def test_a_map_spread_beyond_the_ground_truth_pushes_its_neighbour_away(viewer, 
     gt_width = xb.max() - xb.min()
     assert xa.max() - xa.min() > 2.0 * gt_width  # the spread map really is wider
     assert xa.max() < xb.min()  # ... and lies wholly left of its neighbour
+
+
+def test_an_unknown_event_kind_changes_nothing_shown(viewer, seq, icp_events) -> None:
+    """A kind without a reducer is counted, never drawn as an iteration."""
+
+    class Note:
+        kind = "note"
+        iteration = 5
+        ate = 123.0
+
+    sink = viewer.sink("noted", "icp", seq, select=True)
+    for ev in icp_events[:2]:
+        sink.emit(ev)
+    sink.emit(Note())
+    assert viewer.wait_idle(5)
+    job = viewer.jobs()["noted"]
+    assert job["events"] == 3 and job["history"] == 1 and job["iteration"] == icp_events[1].iteration
+    assert "123" not in viewer._jobs["noted"].nodes["/jobs/noted/label"].text
+    viewer.remove_job("noted")
