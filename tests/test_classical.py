@@ -16,8 +16,8 @@ from strep_core import registration as reg
 from strep_core.config import ClassicalConfig, RunConfig
 from strep_core.errors import Cancelled
 from strep_core.events import CallbackSink, CancelToken, IterationEvent, ListSink
-from strep_core.methods import run
 from strep_core.methods.classical import loop_candidates
+from strep_core.runner import run
 from strep_core.sequence import Sequence
 
 

@@ -16,8 +16,7 @@ from app.viewer.server import CHART_INTERVAL, loss_exponent
 from strep_core import geometry as g
 from strep_core.config import RunConfig
 from strep_core.events import IterationEvent, ListSink, MultiSink, StageEvent, StartEvent, pose_list
-from strep_core.methods import run
-from strep_core.pipeline import load_input
+from strep_core.runner import load_input, run
 
 MAX_POINTS = 8_000
 

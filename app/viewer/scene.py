@@ -30,7 +30,7 @@ import numpy as np
 
 from strep_core import geometry as g
 from strep_core.events import Event, parse_event, stage_label
-from strep_core.pipeline import frame_colors
+from strep_core.result import frame_colors
 from strep_core.sequence import Sequence
 
 # --------------------------------------------------------------------------------------------

@@ -40,11 +40,11 @@ from strep_core import registration as reg
 from strep_core.config import ClassicalConfig, RunConfig
 from strep_core.errors import RegistrationError
 from strep_core.events import IterationEvent, pose_list
-from strep_core.methods.registry import MethodOutput, RunContext, register
+from strep_core.methods.base import MethodOutput, RunContext, method
 from strep_core.sequence import Sequence
 
 
-@register("identity", description="every frame at its initial guess (identity or odometry); a floor")
+@method("identity", description="every frame at its initial guess (identity or odometry); a floor")
 def identity_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: RunContext) -> MethodOutput:
     return MethodOutput(poses=init.copy())
 
@@ -95,7 +95,7 @@ class _Progress:
 # icp
 
 
-@register(
+@method(
     "icp",
     description="incremental point-to-plane ICP (Open3D), each frame to a local map of the previous ones",
 )
@@ -146,7 +146,7 @@ def loop_candidates(positions: np.ndarray, *, radius: float, min_gap: int, max_p
     return pairs
 
 
-@register(
+@method(
     "multiway",
     description="Open3D pose graph: ICP odometry edges + proximity loop closures, Levenberg-Marquardt",
     total_iterations=lambda seq, cfg: 2 * len(seq),
@@ -300,7 +300,7 @@ def kiss_settings(seq: Sequence, cfg: ClassicalConfig) -> dict[str, float]:
     }
 
 
-@register("kiss", description="KISS-ICP 1.3 odometry (point-to-point to a voxel map, adaptive threshold)")
+@method("kiss", description="KISS-ICP 1.3 odometry (point-to-point to a voxel map, adaptive threshold)")
 def kiss_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: RunContext) -> MethodOutput:
     """KISS-ICP on the frames (2D as ``z = 0`` points), deskewing off.
 

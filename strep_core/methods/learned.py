@@ -12,7 +12,7 @@ import os
 import numpy as np
 
 from strep_core.config import RunConfig
-from strep_core.methods.registry import MethodOutput, RunContext, register
+from strep_core.methods.base import MethodOutput, RunContext, method
 from strep_core.sequence import Sequence
 
 # torch's OpenMP threads spin while they wait for work. On a shared CPU (other jobs running)
@@ -26,7 +26,7 @@ def _iterations(seq: Sequence, cfg: RunConfig) -> int:
     return cfg.optim.iterations
 
 
-@register(
+@method(
     "strep",
     description="STREP (Wang et al.): temporally linked latents + PointNet pose decoder, Chamfer + occupancy",
     learned=True,
@@ -38,7 +38,7 @@ def strep(seq: Sequence, init_poses: np.ndarray, config: RunConfig, ctx: RunCont
     return optimize(seq, init_poses, config, ctx, variant="strep")
 
 
-@register(
+@method(
     "strep-nolink",
     description="STREP ablation: per-frame latents without the temporal link w",
     learned=True,
@@ -50,7 +50,7 @@ def strep_nolink(seq: Sequence, init_poses: np.ndarray, config: RunConfig, ctx: 
     return optimize(seq, init_poses, config, ctx, variant="strep-nolink")
 
 
-@register(
+@method(
     "deepmapping",
     description="DeepMapping (Ding & Feng 2019): pose from the points alone, no latent",
     learned=True,
