@@ -119,33 +119,6 @@ def icp_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: RunConte
 # multiway
 
 
-def loop_candidates(positions: np.ndarray, *, radius: float, min_gap: int, max_per_frame: int) -> list[tuple[int, int]]:
-    """Loop-closure candidates by proximity: pairs ``(i, j)``, ``j - i >= min_gap``.
-
-    For each frame j, the ``max_per_frame`` nearest earlier frames within ``radius`` (at least
-    ``min_gap`` frames earlier), nearest first. Cost O(K log K) with a KD-tree, not O(K^2).
-
-    Args:
-        positions: ``(K, D)`` current frame positions (sequence unit).
-        radius: search radius (sequence unit).
-        min_gap: smallest index difference of a candidate pair.
-        max_per_frame: cap per frame j.
-    """
-    from scipy.spatial import cKDTree
-
-    if max_per_frame <= 0 or len(positions) <= min_gap:
-        return []
-    tree = cKDTree(positions)
-    pairs: list[tuple[int, int]] = []
-    for j, near in enumerate(tree.query_ball_point(positions, r=radius)):
-        earlier = [i for i in near if i <= j - min_gap]
-        if not earlier:
-            continue
-        dist = np.linalg.norm(positions[earlier] - positions[j], axis=1)
-        pairs.extend((earlier[n], j) for n in np.argsort(dist, kind="stable")[:max_per_frame])
-    return pairs
-
-
 @method(
     "multiway",
     description="Open3D pose graph: ICP odometry edges + proximity loop closures, Levenberg-Marquardt",
@@ -212,7 +185,7 @@ def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
         candidates = (
             []
             if use_global
-            else loop_candidates(
+            else reg.loop_candidates(
                 g.translation(odo.poses),
                 radius=radius,
                 min_gap=cfg.loop_min_gap,
@@ -225,7 +198,7 @@ def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
             by_frame.setdefault(j, []).append(i)
         for j in range(k_frames):
             for i in by_frame.get(j, []):
-                res = reg.register_with(
+                res = reg.icp_pair(
                     clouds[j], clouds[i], g.relative(poses3[i], poses3[j]), params, scales=loop_scales, yaw_search=False
                 )
                 if res.fitness < cfg.loop_min_fitness:
