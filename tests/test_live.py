@@ -129,6 +129,11 @@ def test_job_writes_its_recording(client: TestClient, tmp_path: Path) -> None:
     # atomic: no temporary left beside the result files
     names = {p.name for p in client.app.state.service.jobs.result_dir(job["id"]).iterdir()}
     assert names == set(done["files"])
+    # the scene its worker wrote (the service reads this, never the upload): the frames it registered
+    scene = client.app.state.service.loader.load(job["id"])
+    assert client.app.state.service.jobs.scene_path(job["id"]).is_file()
+    assert (len(scene), scene.name) == (FRAMES, "sim2d-small")
+    np.testing.assert_array_equal(scene.indices, read_tum(tmp_path / "t.tum").stamps)
 
 
 # ---- a comparison: combined recording and the live viewer ------------------------------------
