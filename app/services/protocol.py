@@ -3,7 +3,8 @@ the job's pipe. Both sides import this module (pydantic only, no numpy or torch)
 added or renamed is one change, checked on both ends.
 
 A worker sends `EventMessage` s while the run goes, then one `DoneMessage`; a Ray worker first
-sends a `PidMessage` (its process id, known once its actor has started).
+sends a `PidMessage` (its process id, known once its actor has started). The upload reader
+(`app.services.worker.reader_loop`) answers each `ReadRequest` with a `ReadOk` or a `ReadFailed`.
 """
 
 from __future__ import annotations
@@ -70,3 +71,36 @@ _MESSAGE: TypeAdapter[WorkerMessage] = TypeAdapter(WorkerMessage)
 def parse_message(message: Any) -> EventMessage | DoneMessage | PidMessage:
     """A message received from a pipe, checked (a model as sent, or its dict)."""
     return _MESSAGE.validate_python(message)
+
+
+# ---- the upload reader ----------------------------------------------------------------------
+
+
+class ReadRequest(BaseModel):
+    """Read an upload to validate it, within the service's limits."""
+
+    path: str
+    selection: str | None = None
+    max_extract_bytes: int
+    extract_dir: str | None = None
+    max_points: int | None = None
+
+
+class ReadOk(BaseModel):
+    kind: Literal["ok"] = "ok"
+    summary: dict[str, Any] = Field(description="name, frames, dims, points, unit, has_ground_truth")
+
+
+class ReadFailed(BaseModel):
+    kind: Literal["error"] = "error"
+    error_class: str = Field(description="the `strep_core.errors` class the reader raised")
+    message: str
+
+
+ReadReply = Annotated[ReadOk | ReadFailed, Field(discriminator="kind")]
+_REPLY: TypeAdapter[ReadReply] = TypeAdapter(ReadReply)
+
+
+def parse_read_reply(reply: Any) -> ReadOk | ReadFailed:
+    """A reader's reply received from its pipe, checked."""
+    return _REPLY.validate_python(reply)

@@ -10,8 +10,8 @@
 * `reader_loop`: a long-lived process that reads uploads to validate them, so a reader that
   crashes or runs away never takes the service with it.
 
-The spec and the messages are the models of `app.services.protocol`. Heavy imports (numpy,
-torch) wait inside the functions, after the child has set its thread limits.
+The spec and the messages are the models of `app.services.protocol`. The core (torch
+included) is imported inside the functions, after the child has set its thread limits.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ import traceback
 from pathlib import Path
 from typing import Any
 
-from app.services.protocol import DoneMessage, EventMessage, JobSpec
+from app.services.protocol import DoneMessage, EventMessage, JobSpec, ReadFailed, ReadOk, ReadRequest
 
 RECORDING = "recording.rrd"
 THREAD_ENV = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
@@ -254,11 +254,7 @@ def summarize(seq: Any) -> dict[str, Any]:
 
 
 def reader_loop(conn: multiprocessing.connection.Connection, plugins: list[str], nice: int = 0) -> None:
-    """Serve read requests ``(path, selection, max_extract_bytes, extract_dir, max_points)`` until
-    the pipe closes.
-
-    Replies ``("ok", summary)`` or ``("error", error class name, message)``.
-    """
+    """Serve `ReadRequest` s until the pipe closes; each gets a `ReadOk` or a `ReadFailed`."""
     _watch_parent()
     _lower_priority(nice)
     _limit_threads(1)
@@ -267,18 +263,26 @@ def reader_loop(conn: multiprocessing.connection.Connection, plugins: list[str],
 
     while True:
         try:
-            path, selection, max_bytes, extract_dir, max_points = conn.recv()
+            request = ReadRequest.model_validate(conn.recv())
         except (EOFError, OSError):
             return
+        reply: ReadOk | ReadFailed
         try:
-            reply: tuple[Any, ...] = ("ok", summarize(load_source(path, selection, max_bytes, extract_dir, max_points)))
+            seq = load_source(
+                request.path, request.selection, request.max_extract_bytes, request.extract_dir, request.max_points
+            )
+            reply = ReadOk(summary=summarize(seq))
         except StrepError as exc:
-            reply = ("error", type(exc).__name__, str(exc))
+            reply = ReadFailed(error_class=type(exc).__name__, message=str(exc))
         except MemoryError:
-            reply = ("error", "FormatError", "the file needs more memory to read than this service allows")
+            reply = ReadFailed(
+                error_class="FormatError", message="the file needs more memory to read than this service allows"
+            )
         except Exception as exc:  # a reader bug: report it as unreadable, keep serving
             traceback.print_exc()
-            reply = ("error", "FormatError", f"the file could not be read ({type(exc).__name__}: {exc})")
+            reply = ReadFailed(
+                error_class="FormatError", message=f"the file could not be read ({type(exc).__name__}: {exc})"
+            )
         try:
             conn.send(reply)
         except (OSError, ValueError):
