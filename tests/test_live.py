@@ -139,7 +139,16 @@ def test_job_writes_its_recording(client: TestClient, tmp_path: Path) -> None:
 # ---- a comparison: combined recording and the live viewer ------------------------------------
 
 
-def test_comparison_recording_and_viewer(client: TestClient, tmp_path: Path) -> None:
+def test_comparison_recording_and_viewer(client: TestClient, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # the viewer and the recordings read the scenes the workers wrote: this process reads no input
+    import strep_core.io
+    import strep_core.samples
+
+    def never(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the service process read an input")
+
+    monkeypatch.setattr(strep_core.samples, "load_sample", never)
+    monkeypatch.setattr(strep_core.io, "load_sequence", never)
     service = client.app.state.service
     viewer = service.viewer
     iterations = 12
