@@ -18,7 +18,7 @@ import contextlib
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -90,7 +90,7 @@ def initial_guess(seq: Sequence, config: RunConfig, ctx: RunContext, *, learned:
     learned ones. ``icp``/``multiway``/``kiss`` run that classical method from the base guess
     first; ``fpfh`` places views far apart by global feature matching (`strep_core.globalreg`).
     """
-    init = config.init
+    init: str = config.init
     if init == "auto":
         init = LEARNED_WARM_START if learned else "base"
     if init == "base":
@@ -240,9 +240,16 @@ def run_input(
     sink.emit(StageEvent(stage="load", elapsed=0.0))
     scene = load_scene(source, config)
     with contextlib.ExitStack() as stack:
-        extra = [stack.enter_context(s) if hasattr(s, "__enter__") else s for s in (sinks(scene) if sinks else [])]
+        extra = [_opened(stack, s) for s in (sinks(scene) if sinks else [])]
         result = run_scene(scene, config, sink=MultiSink([sink, *extra]) if extra else sink, cancel=cancel)
     if out_dir is not None:
         sink.emit(StageEvent(stage="write", elapsed=time.perf_counter() - started))
         result.files = write_outputs(result, out_dir)
     return result
+
+
+def _opened(stack: contextlib.ExitStack[Any], sink: Sink) -> Sink:
+    """``sink`` entered on ``stack`` when it is a context manager (closed with the stack), else as is."""
+    if isinstance(sink, contextlib.AbstractContextManager):
+        return cast(Sink, stack.enter_context(sink))
+    return sink

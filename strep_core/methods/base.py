@@ -9,7 +9,7 @@ the same `Result`. This module imports no method: methods import it, the runner 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -48,7 +48,7 @@ class MethodOutput:
     history: list[dict[str, Any]] = field(default_factory=list)
     artifacts: dict[str, Any] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
-    metrics: dict[str, float | int] = field(default_factory=dict)  # method-specific, into Result.metrics
+    metrics: Mapping[str, float | int] = field(default_factory=dict)  # method-specific, into Result.metrics
 
 
 MethodFn = Callable[[Sequence, np.ndarray, RunConfig, RunContext], MethodOutput]
