@@ -5,7 +5,8 @@ starts, split along its seams:
 * `clouds`: Open3D clouds with normals, planar projections;
 * `pairwise`: point-to-plane ICP of a pair, coarse to fine, with its guards (`icp_pair`);
 * `chain`: the incremental chain along a sequence (`incremental_icp`);
-* `loops`: loop-closure candidates for the pose graph (by proximity, or by the global scan matcher).
+* `loops`: loop closures, proposed by proximity or by the global scan matcher, verified;
+* `posegraph`: the pose graph of a chain and its loops, optimised.
 
 Conventions (see `strep_core.geometry`): poses are homogeneous ``(D+1, D+1)`` matrices,
 local -> world; lengths are in the sequence's unit (pixels or metres); a pairwise result maps
@@ -31,9 +32,10 @@ from strep_core.registration.clouds import (
     project_planar,
     transform_cloud,
 )
-from strep_core.registration.loops import LoopClosure, global_loop_closures, loop_candidates
+from strep_core.registration.loops import LoopClosure, global_loop_closures, loop_candidates, proximity_loop_closures
 from strep_core.registration.pairwise import PairResult, align_frames, icp_pair, keep_guess_where_weak
 from strep_core.registration.params import RegistrationParams, point_spacing, resolve_params, yaw_offsets
+from strep_core.registration.posegraph import optimise_pose_graph
 
 __all__ = [
     "IncrementalResult",
@@ -51,11 +53,13 @@ __all__ = [
     "make_cloud",
     "normals_2d",
     "open3d_quiet",
+    "optimise_pose_graph",
     "pair_report",
     "point_spacing",
     "prepare_frame",
     "prepare_frames",
     "project_planar",
+    "proximity_loop_closures",
     "resolve_params",
     "step_prior",
     "transform_cloud",

@@ -1,7 +1,6 @@
-"""Loop-closure candidates for the pose graph of ``multiway`` (`strep_core.methods.classical`):
-proposed by proximity (`loop_candidates`, then verified by ICP there), or on 2D keyframes
-proposed and verified by the global scan matcher (`global_loop_closures`;
-docs/design/scan-matching.md)."""
+"""Loop closures for the pose graph (`strep_core.registration.posegraph`): proposed by proximity
+(`loop_candidates`) and verified by ICP (`proximity_loop_closures`), or on 2D keyframes proposed
+and verified by the global scan matcher (`global_loop_closures`; docs/design/scan-matching.md)."""
 
 from __future__ import annotations
 
@@ -14,14 +13,15 @@ import numpy as np
 
 from strep_core import geometry as g
 from strep_core.registration.clouds import from_se3
-from strep_core.registration.pairwise import _icp_stages
+from strep_core.registration.pairwise import _icp_stages, icp_pair
 from strep_core.registration.params import RegistrationParams
 from strep_core.scanmatch import ScanMatcher
 
 
 @dataclass
 class LoopClosure:
-    """A verified loop closure: ``transformation`` ``(4, 4)`` maps frame ``j`` into frame ``i``."""
+    """A verified loop closure: ``transformation`` ``(4, 4)`` maps frame ``j`` into frame ``i``;
+    ``score`` is the global matcher's (both ways), or the ICP fitness for a proximity loop."""
 
     i: int
     j: int
@@ -139,3 +139,32 @@ def loop_candidates(positions: np.ndarray, *, radius: float, min_gap: int, max_p
         dist = np.linalg.norm(positions[earlier] - positions[j], axis=1)
         pairs.extend((earlier[n], j) for n in np.argsort(dist, kind="stable")[:max_per_frame])
     return pairs
+
+
+def proximity_loop_closures(
+    clouds: list[Any],
+    poses: np.ndarray,
+    candidates: list[tuple[int, int]],
+    params: RegistrationParams,
+    *,
+    scales: tuple[float, ...],
+    min_fitness: float,
+    on_frame: Callable[[int], None] | None = None,
+) -> list[LoopClosure]:
+    """The ``candidates`` (`loop_candidates`) that ICP verifies: from the current estimate's
+    relative pose, stages ``scales``, no yaw search; kept at ``min_fitness``. In the order of
+    frame j, then of the candidates; ``on_frame(j)`` after each frame j > 0."""
+    poses3 = g.to_se3(np.asarray(poses, dtype=np.float64))
+    by_frame: dict[int, list[int]] = {}
+    for i, j in candidates:
+        by_frame.setdefault(j, []).append(i)
+    found: list[LoopClosure] = []
+    for j in range(len(clouds)):
+        for i in by_frame.get(j, []):
+            guess = g.relative(poses3[i], poses3[j])
+            res = icp_pair(clouds[j], clouds[i], guess, params, scales=scales, yaw_search=False)
+            if res.fitness >= min_fitness:
+                found.append(LoopClosure(i, j, res.transformation, res.fitness, res.fitness))
+        if j > 0 and on_frame is not None:
+            on_frame(j)
+    return found
