@@ -17,7 +17,7 @@ import numpy as np
 from strep_core import geometry as g
 from strep_core.config import RunConfig
 from strep_core.events import IterationEvent, pose_list
-from strep_core.methods.registry import MethodOutput, RunContext, register
+from strep_core.methods.base import MethodOutput, RunContext, method
 from strep_core.sequence import Sequence
 
 STEP_SECONDS = 0.02
@@ -49,11 +49,11 @@ def _total(seq: Sequence, config: RunConfig) -> int:
     return config.optim.iterations
 
 
-@register("demo-sleep", description="demo: sleeps optim.iterations steps, emitting events", total_iterations=_total)
+@method("demo-sleep", description="demo: sleeps optim.iterations steps, emitting events", total_iterations=_total)
 def demo_sleep(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: RunContext) -> MethodOutput:
     return _steps(seq, init, config, ctx, check_cancel=True)
 
 
-@register("demo-stubborn", description="demo: like demo-sleep but ignores cancellation", total_iterations=_total)
+@method("demo-stubborn", description="demo: like demo-sleep but ignores cancellation", total_iterations=_total)
 def demo_stubborn(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: RunContext) -> MethodOutput:
     return _steps(seq, init, config, ctx, check_cancel=False)

@@ -45,11 +45,13 @@ def main() -> None:
     args = parser.parse_args()
 
     from strep_core import geometry as g
+    from strep_core.batching import prepare
     from strep_core.config import RunConfig
     from strep_core.events import NullSink
     from strep_core.io.deepmapping import read_deepmapping
-    from strep_core.methods.registry import RunContext
-    from strep_core.optimize import StrepModel, optimize, prepare
+    from strep_core.methods.base import RunContext
+    from strep_core.model import StrepModel
+    from strep_core.optimize import optimize
 
     seq = read_deepmapping(args.data)
     raw: dict = {"method": args.method, "threads": args.threads, "optim": {"iterations": args.iterations}}

@@ -24,7 +24,7 @@ import numpy as np
 from app.viewer import ViewerServer
 from strep_core import geometry as g
 from strep_core.events import IterationEvent, StartEvent, pose_list
-from strep_core.pipeline import load_input
+from strep_core.runner import load_input
 
 
 def main() -> None:

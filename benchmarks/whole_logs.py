@@ -20,7 +20,7 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "carmen"
 
 def run_logs(logs: list[str], method: str, out: Path) -> dict:
     from strep_core.config import RunConfig
-    from strep_core.pipeline import run_input
+    from strep_core.runner import run_input
 
     report: dict = {}
     for log in logs:

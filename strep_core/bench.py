@@ -215,8 +215,9 @@ def case_config(case: BenchCase, method: str, quick: bool, seq: Sequence) -> Run
 
 
 def run_case(case: BenchCase, methods: list[str], quick: bool, threads: int | None = None) -> list[dict[str, Any]]:
-    """Run each method on the case; ``threads`` (torch CPU threads) overrides the configs' default."""
-    from strep_core.methods import run
+    """Run each method on the case through the runner (`strep_core.runner.run`), the case read once;
+    ``threads`` (torch CPU threads) overrides the configs' default."""
+    from strep_core.runner import run
 
     seq = case.load()
     rows = []

@@ -178,7 +178,7 @@ def _check_output(path: Path, what: str, *, folder: bool) -> None:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from strep_core.pipeline import run_input
+    from strep_core.runner import run_input
 
     if cloud := _single_cloud(args.input):
         raise StrepError(
@@ -192,26 +192,17 @@ def cmd_run(args: argparse.Namespace) -> int:
         _check_output(args.rrd, "--rrd", folder=False)
     mode: ProgressMode = "off" if args.quiet else "bar" if (sys.stderr.isatty() or args.progress) else "lines"
     sink = _ProgressSink(mode, config.method)
+
+    def recording(scene: Any) -> list[Any]:
+        """``--rrd``: a Rerun recording of the run (the sink lives in app/, imported only when asked)."""
+        import uuid
+
+        from app.rrd import cli_sink
+
+        return [cli_sink(args.rrd, scene, config.method, f"cli-{uuid.uuid4().hex[:12]}")]
+
     try:
-        if args.rrd is None:
-            result = run_input(args.input, config, out_dir=out_dir, sink=sink)
-        else:  # the recorder needs the sequence before the run: the steps of run_input, with it
-            import time
-            import uuid
-
-            from app.rrd import cli_sink  # the Rerun sink lives in app/, imported only when asked
-            from strep_core.events import MultiSink, StageEvent
-            from strep_core.methods import run
-            from strep_core.pipeline import load_input, write_outputs
-
-            started = time.perf_counter()
-            sink.emit(StageEvent(stage="load", elapsed=0.0))
-            seq = load_input(args.input, frames=config.frames, options=config.data.options())
-            with cli_sink(args.rrd, seq, config.method, f"cli-{uuid.uuid4().hex[:12]}") as rrd:
-                result = run(seq, config.model_copy(update={"frames": None}), sink=MultiSink([sink, rrd]))
-            result.config = config
-            sink.emit(StageEvent(stage="write", elapsed=time.perf_counter() - started))
-            write_outputs(result, out_dir)
+        result = run_input(args.input, config, out_dir=out_dir, sink=sink, sinks=recording if args.rrd else None)
     finally:
         sink.close()
     m = result.metrics
@@ -268,7 +259,7 @@ def cmd_methods(args: argparse.Namespace) -> int:
 
 
 def cmd_info(args: argparse.Namespace) -> int:
-    from strep_core.pipeline import load_input
+    from strep_core.runner import load_input
 
     if cloud := _single_cloud(args.input):  # one frame: described, though no method registers it alone
         from strep_core.io.folder import read_point_cloud

@@ -3,7 +3,7 @@
 Local methods (ICP, KISS, the learned ones) converge only from a guess within a few tens of
 degrees; the views of a multi-view scan (the Stanford bunny: up to 180 degrees apart) need a
 global step first. This module offers it as the initial guess ``init="fpfh"``
-(`strep_core.methods.registry.initial_guess`).
+(`strep_core.runner.initial_guess`).
 
 Conventions as in `strep_core.registration`: poses are ``(D+1, D+1)`` local -> world; a
 pairwise result ``T`` maps source into target coordinates. 2D frames run in 3D at ``z = 0``
@@ -268,15 +268,10 @@ def ransac_pair(
 def _refine(
     source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, init: np.ndarray, gp: GlobalParams, planar: bool
 ) -> reg.PairResult:
-    return reg.register_clouds(
-        source,
-        target,
-        reg.project_planar(init) if planar else init,
-        max_correspondence=gp.refine_distance,
-        scales=gp.refine_scales,
-        iterations=50,
-        planar=planar,
+    params = reg.RegistrationParams(
+        dim=2 if planar else 3, max_correspondence=gp.refine_distance, scales=tuple(gp.refine_scales), iterations=50
     )
+    return reg.icp_pair(source, target, reg.project_planar(init) if planar else init, params)
 
 
 def _score(

@@ -32,6 +32,7 @@ import torch
 from torch import nn
 
 from strep_core import geometry as g
+from strep_core.config import ModelConfig
 
 Variant = Literal["strep", "strep-nolink", "deepmapping"]
 Composition = Literal["local", "world"]
@@ -224,3 +225,42 @@ def compose_correction(init: torch.Tensor, corr: torch.Tensor, *, composition: C
     out[..., :d, :d] = corr[..., :d, :d] @ init[..., :d, :d]
     out[..., :d, d] = init[..., :d, d] + corr[..., :d, d]
     return out
+
+
+# --------------------------------------------------------------------------------------------
+# One run's model: latents + decoder + occupancy
+
+
+class StrepModel(nn.Module):
+    """Latents (per variant), pose decoder and occupancy MLP of one run.
+
+    ``forward(decoder_points, frames, latents)`` returns correction vectors; the latents
+    of the whole sequence are computed once per step by ``self.latents()`` (the chain spans
+    every frame, so a batch's loss reaches earlier frames through ``w``).
+    """
+
+    def __init__(self, variant: Variant, dim: int, num_frames: int, cfg: ModelConfig) -> None:
+        super().__init__()
+        self.variant = variant
+        latent_dim = latent_size(cfg, dim) if variant != "deepmapping" else 0
+        # Built in this order so that every variant draws the same random numbers for the
+        # shared networks (the decoder creates its latent layer last).
+        self.occupancy = OccupancyMLP(dim, cfg.occupancy_layers)
+        self.decoder = PoseDecoder(dim, latent_dim, cfg.point_layers, cfg.head_layers, batch_norm=cfg.batch_norm)
+        self.latents = (
+            Latents(num_frames, latent_dim, linked=variant == "strep", w_init=cfg.link_init) if latent_dim else None
+        )
+
+    def all_latents(self) -> torch.Tensor | None:
+        """``(K, b)`` latents of every frame, or ``None`` (deepmapping)."""
+        return None if self.latents is None else self.latents()
+
+    def forward(self, decoder_points: torch.Tensor, frames: torch.Tensor, latents: torch.Tensor | None) -> torch.Tensor:
+        """Correction vectors ``(B, 3|6)`` of ``frames (B,)`` from their ``(B, Nd, D)`` points."""
+        z = None if latents is None else latents.index_select(0, frames)
+        return self.decoder(decoder_points, z)
+
+
+def latent_size(cfg: ModelConfig, dim: int) -> int:
+    """Latent dimension: the config's, else 16 in 2D and 24 in 3D (paper)."""
+    return cfg.latent_dim if cfg.latent_dim is not None else (16 if dim == 2 else 24)

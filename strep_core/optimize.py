@@ -1,49 +1,23 @@
 """The per-sequence optimisation loop of the learned methods (strep, strep-nolink, deepmapping).
 
-`optimize` fits the networks of `strep_core.model` to one sequence from ``init_poses``
-(``start="pose-graph"``: by default the ``multiway`` pose graph, i.e. incremental ICP plus loop
-closures; ``start="scratch"``: identity, the paper's setting), minimising with Adam
+`optimize` fits the networks of `strep_core.model` to one sequence from ``init_poses`` (the pose
+graph by default, identity from scratch), minimising with Adam a Chamfer term over frame
+neighbourhoods, optionally the occupancy BCE and a weak-direction penalty, over poses
+``pose_k = correction_k (x) init_k``. It reports only through ``ctx.sink`` and checks
+``ctx.check_cancel()`` before every iteration; the data it works on is packed by
+`strep_core.batching`, the trained model is saved by `strep_core.artifacts`.
 
-    L = chamfer_weight * Chamfer(frames, neighbours) + occupancy_weight * occupancy BCE
-        + weak_weight * mean_k  dt_k^T A_k dt_k   (translation corrections along weak directions)
+Decisions (the measurements behind each: docs/design/warm-start.md, docs/design/from-scratch.md):
 
-over poses ``pose_k = correction_k (x) init_k`` decoded by the networks. It reports only
-through ``ctx.sink`` (an `IterationEvent` every ``optim.event_interval`` iterations, with the
-current poses of every frame and the ATE when ground truth exists), calls
-``ctx.check_cancel()`` before every iteration, and ends with one inference pass that gives
-the final poses. `save_model` / `load_model` write and read the trained networks; with
-``config.from_model`` and ``config.freeze`` only fresh latents are optimised (test-time mode).
-
-Decisions (measurement histories: docs/design/warm-start.md for the pose-graph start,
-docs/design/from-scratch.md for the start from identity):
-
-* Units: local points and translations are divided by `Sequence.scale`, so one set of
-  defaults serves pixels and metres.
-* The decoder's last layer is zero-initialised: iteration 0 is exactly the starting poses,
-  reported as an `IterationEvent` with ``iteration=0`` so that every chart starts there.
-* Chamfer over neighbourhoods: temporal neighbours within ``+-window`` frames, plus spatial
-  neighbours (sensors within ``loop_radius * scale``, recomputed every ``pair_interval``
-  iterations, from ``loop_after * iterations`` on); truncated or Huber distances, point-to-plane
-  by default, the threshold annealed from ``threshold_start`` to ``threshold``. The paper's
-  plain squared distances diverge under partial overlap (a departure, docs/reproduction.md).
-* ``weak_weight``: a penalty on each frame's translation correction along the directions its own
-  normals constrain weakly (a corridor's axis), which the Chamfer terms cannot see; off by
-  default, on in the ``laser-keyframes`` profile (docs/design/warm-start.md, weak directions).
-* Occupancy BCE (the paper's global term) is weighted by ``occupancy_weight``; off by
-  default in both starts, because measured it made every run worse (see the two designs).
-* From scratch (`SCRATCH_PROFILE`): ``w`` starts at 1 (the linked latents then form an
-  integrator of per-frame increments), the latents learn at 1e-2 (the paper: 1e-4), Huber
-  distances between temporal pairs; from halfway, loop pairs close the chain with truncated
-  distances, each match weighted ``window / span``: a loop spanning n frames moves n
-  increments of the chain, and unweighted (Adam gives every increment a full step) it tore
-  v1_pose0 apart (2 px -> 106 px).
-* Adam, a cosine schedule down to ``final_lr_fraction``; a fixed strided subset of
-  ``decoder_points`` points per frame feeds the decoder; ``points_per_frame`` random queries
-  per frame and step.
-
-Cost per iteration is linear in frames and points: one decoder pass over ``K x
-decoder_points`` points, one KD-tree over the batch's points, ``K x points_per_frame x
-(pairs per frame)`` queries. See ``benchmarks/profile_strep.py``.
+* lengths are divided by `Sequence.scale`: one set of defaults serves pixels and metres;
+* the decoder's last layer starts at zero, so iteration 0 (an `IterationEvent`) is exactly the
+  starting poses and every chart starts there;
+* truncated or Huber Chamfer, point-to-plane by default, threshold annealed: the paper's plain
+  squared distances diverge under partial overlap;
+* occupancy BCE off by default (measured worse); loop pairs from halfway, weighted by the frames
+  they span, close the chain from scratch;
+* Adam with a cosine schedule; cost per iteration linear in frames and points
+  (``benchmarks/profile_strep.py``).
 """
 
 from __future__ import annotations
@@ -51,8 +25,6 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -60,141 +32,24 @@ import torch
 
 from strep_core import geometry as g
 from strep_core import losses, metrics
+from strep_core.artifacts import load_into, load_model, model_artifact
+from strep_core.batching import (
+    Prepared,
+    batch_schedule,
+    local_pairs,
+    prepare,
+    ragged_indices,
+    sample_per_frame,
+    temporal_pairs,
+    weak_matrices,
+    with_partners,
+)
 from strep_core.config import ModelConfig, RunConfig
 from strep_core.errors import ConfigError
 from strep_core.events import IterationEvent, pose_list
-from strep_core.methods.registry import MethodOutput, RunContext
-from strep_core.model import (
-    Latents,
-    OccupancyMLP,
-    PoseDecoder,
-    Variant,
-    compose_correction,
-    correction_pose,
-)
+from strep_core.methods.base import MethodOutput, RunContext
+from strep_core.model import StrepModel, Variant, compose_correction, correction_pose
 from strep_core.sequence import Sequence
-
-ARTIFACT_VERSION = 1
-
-
-# --------------------------------------------------------------------------------------------
-# Data prepared once per run
-
-
-@dataclass
-class Prepared:
-    """A sequence as float32 tensors in normalised units.
-
-    Attributes:
-        dim: D.
-        scale: the sequence's `scale` (length unit per normalised unit).
-        points: ``(M, D)`` local points of every frame (working set), concatenated.
-        starts: ``(K + 1,)`` int64: frame ``k`` owns ``points[starts[k]:starts[k+1]]``.
-        decoder_points: ``(K, Nd, D)`` the fixed decoder input of every frame.
-        origins: ``(K, D)`` sensor origins, local.
-        init: ``(K, D+1, D+1)`` warm-start poses, translations normalised.
-        centre: ``(D,)`` normalised world centre of the warm-start trajectory (occupancy input
-            is ``world - centre``).
-        normals: ``(M, D)`` local unit normals of ``points`` (``loss.chamfer="plane"``), else None.
-    """
-
-    dim: int
-    scale: float
-    points: torch.Tensor
-    starts: np.ndarray
-    decoder_points: torch.Tensor
-    origins: torch.Tensor
-    init: torch.Tensor
-    centre: torch.Tensor
-    normals: torch.Tensor | None = None
-
-    @property
-    def num_frames(self) -> int:
-        return len(self.starts) - 1
-
-
-def _strided(n: int, m: int | None) -> np.ndarray:
-    """``min(n, m)`` evenly spread indices of ``range(n)``; ``m`` of them (repeating) if n < m."""
-    if m is None or n == m:
-        return np.arange(n)
-    return np.floor(np.arange(m) * (n / m)).astype(np.int64)
-
-
-def prepare(
-    seq: Sequence, init_poses: np.ndarray, config: RunConfig, device: torch.device, rng: np.random.Generator
-) -> Prepared:
-    """Normalise and pack a sequence for the optimiser (see `Prepared`)."""
-    scale = seq.scale()
-    cap = config.optim.max_points_per_frame
-    frames = []
-    for f in seq.frames:
-        if len(f) > cap:
-            f = f[np.sort(rng.choice(len(f), cap, replace=False))]
-        frames.append(f / scale)
-    counts = np.array([len(f) for f in frames])
-    nd = config.model.decoder_points
-    nd = int(counts.max()) if nd is None else min(nd, int(counts.max()))
-    dec = np.stack([f[_strided(len(f), nd)] for f in frames])
-    init = np.array(init_poses, dtype=np.float64, copy=True)
-    d = seq.dim
-    init[:, :d, d] /= scale
-    assert seq.origins is not None
-
-    def f32(x: np.ndarray) -> torch.Tensor:
-        return torch.as_tensor(x, dtype=torch.float32, device=device)
-
-    return Prepared(
-        dim=d,
-        scale=scale,
-        points=f32(np.concatenate(frames)),
-        starts=np.r_[0, np.cumsum(counts)].astype(np.int64),
-        decoder_points=f32(dec),
-        origins=f32(seq.origins / scale),
-        init=f32(init),
-        centre=f32(init[:, :d, d].mean(0)),
-        normals=(
-            f32(np.concatenate([losses.frame_normals(f) for f in frames])) if config.loss.chamfer == "plane" else None
-        ),
-    )
-
-
-# --------------------------------------------------------------------------------------------
-# The model: decoder + latents + occupancy, composed into poses
-
-
-class StrepModel(torch.nn.Module):
-    """Latents (per variant), pose decoder and occupancy MLP of one run.
-
-    ``forward(decoder_points, frames, latents)`` returns correction vectors; the latents
-    of the whole sequence are computed once per step by ``self.latents()`` (the chain spans
-    every frame, so a batch's loss reaches earlier frames through ``w``).
-    """
-
-    def __init__(self, variant: Variant, dim: int, num_frames: int, cfg: ModelConfig) -> None:
-        super().__init__()
-        self.variant = variant
-        latent_dim = latent_size(cfg, dim) if variant != "deepmapping" else 0
-        # Built in this order so that every variant draws the same random numbers for the
-        # shared networks (the decoder creates its latent layer last).
-        self.occupancy = OccupancyMLP(dim, cfg.occupancy_layers)
-        self.decoder = PoseDecoder(dim, latent_dim, cfg.point_layers, cfg.head_layers, batch_norm=cfg.batch_norm)
-        self.latents = (
-            Latents(num_frames, latent_dim, linked=variant == "strep", w_init=cfg.link_init) if latent_dim else None
-        )
-
-    def all_latents(self) -> torch.Tensor | None:
-        """``(K, b)`` latents of every frame, or ``None`` (deepmapping)."""
-        return None if self.latents is None else self.latents()
-
-    def forward(self, decoder_points: torch.Tensor, frames: torch.Tensor, latents: torch.Tensor | None) -> torch.Tensor:
-        """Correction vectors ``(B, 3|6)`` of ``frames (B,)`` from their ``(B, Nd, D)`` points."""
-        z = None if latents is None else latents.index_select(0, frames)
-        return self.decoder(decoder_points, z)
-
-
-def latent_size(cfg: ModelConfig, dim: int) -> int:
-    """Latent dimension: the config's, else 16 in 2D and 24 in 3D (paper)."""
-    return cfg.latent_dim if cfg.latent_dim is not None else (16 if dim == 2 else 24)
 
 
 def _poses(
@@ -216,115 +71,6 @@ def _transform(poses: torch.Tensor, points: torch.Tensor, owner: torch.Tensor) -
     rot = poses[:, :d, :d].index_select(0, owner)
     trans = poses[:, :d, d].index_select(0, owner)
     return (rot * points[:, None, :]).sum(-1) + trans
-
-
-def _ragged_indices(starts: np.ndarray, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Point indices of ``frames`` (in order) and each one's position within ``frames``."""
-    n = starts[frames + 1] - starts[frames]
-    offs = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
-    return np.repeat(starts[frames], n) + offs, np.repeat(np.arange(len(frames)), n)
-
-
-def _sample_per_frame(starts: np.ndarray, frames: np.ndarray, k: int | None, rng: np.random.Generator) -> np.ndarray:
-    """Stratified random sample of ``k`` points of every frame (all if it has ``<= k``).
-
-    Frame ``f`` with ``n`` points gets ``floor((j + u_j) n / k)``, ``j < k``, ``u_j ~ U[0, 1)``:
-    distinct points spread evenly over the frame's storage order (over the scan angle for
-    laser scans), in ``O(k)`` per frame.
-
-    Returns:
-        Sorted indices into the batch's concatenated points (frames in the order given).
-    """
-    n = starts[frames + 1] - starts[frames]
-    first = np.r_[0, np.cumsum(n)[:-1]]
-    if k is None or k >= n.max():
-        return np.arange(int(n.sum()))
-    m = np.minimum(n, k)
-    j = np.arange(int(m.sum())) - np.repeat(np.cumsum(m) - m, m)
-    nn, mm = np.repeat(n, m), np.repeat(m, m)
-    pos = np.floor((j + rng.random(len(j))) * (nn / mm)).astype(np.int64)
-    return np.repeat(first, m) + np.minimum(pos, nn - 1)
-
-
-# --------------------------------------------------------------------------------------------
-# Batches
-
-
-def batch_schedule(num_frames: int, batch: int | None, window: int) -> list[np.ndarray]:
-    """Contiguous batches of frames covering the sequence, overlapping by ``window`` frames.
-
-    Consecutive batches share ``window`` frames so every temporal neighbour pair lies
-    inside at least one batch. ``None`` or ``batch >= num_frames``: one batch of all frames.
-    """
-    if batch is None or batch >= num_frames:
-        return [np.arange(num_frames)]
-    stride = max(1, batch - window)
-    starts = [*list(range(0, num_frames - batch, stride)), num_frames - batch]
-    return [np.arange(s, s + batch) for s in starts]
-
-
-def _with_partners(frames: np.ndarray, pairs: np.ndarray) -> np.ndarray:
-    """``frames`` plus their spatial partners in ``pairs`` (sorted, unique)."""
-    if len(pairs) == 0:
-        return frames
-    inside = np.isin(pairs[:, 0], frames)
-    return np.union1d(frames, pairs[inside, 1])
-
-
-def _local_pairs(pairs: np.ndarray, frames: np.ndarray) -> np.ndarray:
-    """Pairs with both frames in ``frames``, renumbered to positions within ``frames``."""
-    if len(pairs) == 0:
-        return pairs
-    ok = np.isin(pairs[:, 0], frames) & np.isin(pairs[:, 1], frames)
-    return np.searchsorted(frames, pairs[ok])
-
-
-# --------------------------------------------------------------------------------------------
-# Model artefacts
-
-
-def save_model(artifact: dict[str, Any], path: str | Path) -> None:
-    """Write a model artefact (``MethodOutput.artifacts["model"]``) with `torch.save`."""
-    torch.save(artifact, Path(path))
-
-
-def load_model(path: str | Path) -> dict[str, Any]:
-    """Read a model artefact written by `save_model` (tensors and plain values only)."""
-    try:
-        art = torch.load(Path(path), map_location="cpu", weights_only=True)
-    except (OSError, RuntimeError, EOFError) as exc:
-        raise ConfigError(f"cannot read model {path}: {exc}") from exc
-    if not isinstance(art, dict) or art.get("version") != ARTIFACT_VERSION:
-        raise ConfigError(f"{path} is not a STREP model artefact (version {ARTIFACT_VERSION})")
-    return art
-
-
-def _artifact(model: StrepModel, prep: Prepared, model_cfg: ModelConfig) -> dict[str, Any]:
-    def cpu(sd: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        return {k: v.detach().cpu().clone() for k, v in sd.items()}
-
-    lat = model.latents
-    return {
-        "version": ARTIFACT_VERSION,
-        "variant": model.variant,
-        "dim": prep.dim,
-        "scale": prep.scale,
-        "model_config": model_cfg.model_dump(),
-        "decoder": cpu(model.decoder.state_dict()),
-        "occupancy": cpu(model.occupancy.state_dict()),
-        "w": None if lat is None or lat.w is None else lat.w.detach().cpu().clone(),
-        "latents": None if lat is None else lat.raw.detach().cpu().clone(),
-    }
-
-
-def _load_into(model: StrepModel, art: dict[str, Any]) -> None:
-    model.decoder.load_state_dict(art["decoder"])
-    model.occupancy.load_state_dict(art["occupancy"])
-    if model.latents is not None and model.latents.w is not None:
-        if art["w"] is None:
-            raise ConfigError("the saved model has no link weight w; it cannot start a linked strep run")
-        with torch.no_grad():
-            model.latents.w.copy_(art["w"])
 
 
 # --------------------------------------------------------------------------------------------
@@ -361,7 +107,7 @@ def optimize(
 
     Returns:
         `MethodOutput` with the final poses (one inference pass), the iteration count, the
-        loss/ATE history, timings and ``artifacts["model"]`` (see `save_model`).
+        loss/ATE history, timings and ``artifacts["model"]`` (see `strep_core.artifacts`).
     """
     threads_before = torch.get_num_threads()
     torch.set_num_threads(config.threads or os.cpu_count() or 1)
@@ -405,7 +151,7 @@ def _build(
     model = StrepModel(variant, prep.dim, prep.num_frames, model_cfg).to(device)
     frozen = art is not None and config.freeze
     if art is not None:
-        _load_into(model, art)
+        load_into(model, art)
     lat = model.latents
     networks = [*model.decoder.parameters(), *model.occupancy.parameters()]
     if lat is not None and lat.w is not None:
@@ -447,7 +193,7 @@ def _optimize(
         return lc.threshold_start * (lc.threshold / lc.threshold_start) ** (it / (total - 1))
 
     current = prep.init.clone()  # (K, D+1, D+1) latest normalised poses of every frame
-    weak = _weak_matrices(prep) if lc.weak_weight > 0 else None
+    weak = weak_matrices(prep) if lc.weak_weight > 0 else None
     base_lrs = [grp["lr"] for grp in optimizer.param_groups] if optimizer else []
     schedule = batch_schedule(k, oc.batch_frames, lc.window)
     pairs_all = np.zeros((0, 2), dtype=np.int64)
@@ -493,14 +239,14 @@ def _optimize(
                 radius=lc.loop_radius,
                 max_per_frame=lc.loop_neighbours,
             )
-        frames_np = _with_partners(schedule[it % len(schedule)], pairs_all)
+        frames_np = with_partners(schedule[it % len(schedule)], pairs_all)
         frames_t = torch.as_tensor(frames_np, device=device)
         clock.lap("batching")
 
         poses = _poses(model, prep, frames_t, model.all_latents(), model_cfg)
         clock.lap("decoder_forward")
 
-        idx, owner = _ragged_indices(prep.starts, frames_np)
+        idx, owner = ragged_indices(prep.starts, frames_np)
         idx_t, owner_t = torch.as_tensor(idx, device=device), torch.as_tensor(owner, device=device)
         world = _transform(poses, prep.points.index_select(0, idx_t), owner_t)
         terms: dict[str, torch.Tensor] = {}
@@ -509,9 +255,9 @@ def _optimize(
             if prep.normals is not None:  # rotate the local normals with their frames
                 rot_only = torch.cat([poses[:, :d, :d], torch.zeros_like(poses[:, :d, d:])], -1)
                 normals = _transform(rot_only, prep.normals.index_select(0, idx_t), owner_t)
-            query = _sample_per_frame(prep.starts, frames_np, oc.points_per_frame, rng)
+            query = sample_per_frame(prep.starts, frames_np, oc.points_per_frame, rng)
             pairs = np.unique(
-                np.concatenate([_temporal_pairs(frames_np, lc.window), _local_pairs(pairs_all, frames_np)]),
+                np.concatenate([temporal_pairs(frames_np, lc.window), local_pairs(pairs_all, frames_np)]),
                 axis=0,
             )
             src, target = losses.pair_queries(owner, pairs, query)
@@ -550,7 +296,7 @@ def _optimize(
             # during the warm-up the map learns from the current poses without moving them
             warm = it < lc.occupancy_warmup
             occ_idx = torch.as_tensor(
-                _sample_per_frame(prep.starts, frames_np, lc.occupancy_points, occ_rng), device=device
+                sample_per_frame(prep.starts, frames_np, lc.occupancy_points, occ_rng), device=device
             )
             hits = (world.detach() if warm else world).index_select(0, occ_idx)
             sensors = _transform(
@@ -609,32 +355,6 @@ def _optimize(
         poses=_to_world_units(final, prep.scale),
         iterations=it,
         history=history,
-        artifacts={"model": _artifact(model, prep, model_cfg)},
+        artifacts={"model": model_artifact(model, model_cfg, dim=prep.dim, scale=prep.scale)},
         timings=timings,
     )
-
-
-def _weak_matrices(prep: Prepared) -> torch.Tensor:
-    """``(K, D, D)`` world-axis penalty matrices of the frames' weak directions at their warm-start
-    rotations (`losses.weak_directions`); normals by PCA when the Chamfer term computed none."""
-    d = prep.dim
-    points = prep.points.detach().cpu().numpy()
-    normals = None if prep.normals is None else prep.normals.detach().cpu().numpy()
-    local = np.stack(
-        [
-            losses.weak_directions(
-                normals[a:b] if normals is not None else losses.frame_normals(points[a:b].astype(np.float64))
-            )
-            for a, b in zip(prep.starts[:-1], prep.starts[1:], strict=True)
-        ]
-    )
-    rot = prep.init[:, :d, :d].detach().cpu().double().numpy()
-    world = np.einsum("kij,kjl,kml->kim", rot, local, rot)
-    return torch.as_tensor(world, dtype=prep.init.dtype, device=prep.init.device)
-
-
-def _temporal_pairs(frames: np.ndarray, window: int) -> np.ndarray:
-    """Ordered pairs of positions ``(a, b)`` in ``frames`` with ``0 < |frames[a] - frames[b]| <= window``."""
-    a, b = np.nonzero(np.abs(frames[:, None] - frames[None, :]) <= window)
-    keep = a != b
-    return np.stack([a[keep], b[keep]], 1).astype(np.int64)

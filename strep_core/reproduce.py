@@ -351,8 +351,8 @@ def _code_version() -> str | None:
 
 def execute(spec: RunSpec, seq: Sequence, out: Path) -> dict[str, Any]:
     """Run one spec on its loaded sequence and return its row (never raises for a failed run)."""
-    from strep_core.methods import run
-    from strep_core.optimize import save_model
+    from strep_core.artifacts import save_model
+    from strep_core.runner import run
 
     t0 = time.perf_counter()
     row: dict[str, Any] = {
@@ -1153,7 +1153,7 @@ def build_report(
         "",
         "## Settings and departures from the paper",
         "",
-        "- Every number comes from runs of this implementation (`strep_core.methods.run`), on the benchmark's "
+        "- Every number comes from runs of this implementation (`strep_core.runner.run`), on the benchmark's "
         "cases (`strep_core.bench`) with its per-case configs, changed only in seed, initial guess and (quick "
         "mode) iterations. ATE: RMSE of positions after a rigid alignment; point L2: mean distance of each point "
         "from its true place after aligning the maps (`strep_core.metrics`).",

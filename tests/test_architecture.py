@@ -11,7 +11,7 @@ FORBIDDEN = ("fastapi", "uvicorn", "starlette", "viser", "rerun", "ray")
 def test_strep_core_imports_no_web_viewer_or_cluster_code() -> None:
     code = (
         "import sys\n"
-        "import strep_core, strep_core.cli, strep_core.pipeline, strep_core.bench, strep_core.sim\n"
+        "import strep_core, strep_core.cli, strep_core.runner, strep_core.bench, strep_core.sim\n"
         "from strep_core.methods import available\n"
         "available()\n"
         "import strep_core.io, strep_core.samples\n"

@@ -16,8 +16,8 @@ from strep_core import registration as reg
 from strep_core.config import ClassicalConfig, RunConfig
 from strep_core.errors import Cancelled
 from strep_core.events import CallbackSink, CancelToken, IterationEvent, ListSink
-from strep_core.methods import run
-from strep_core.methods.classical import loop_candidates
+from strep_core.registration import loop_candidates
+from strep_core.runner import run
 from strep_core.sequence import Sequence
 
 
@@ -124,14 +124,14 @@ def test_normals_2d_of_a_straight_wall() -> None:
     assert (np.einsum("ni,ni->n", normals, -wall) > 0).all()  # facing the sensor at the origin
 
 
-def test_register_pair_2d_is_se2() -> None:
+def test_align_frames_2d_is_se2() -> None:
     rng = np.random.default_rng(1)
     t = rng.uniform(0, 2 * np.pi, 400)
     room = np.stack([6.0 * np.cos(t), 3.0 * np.sin(t)], 1)  # an ellipse of walls
     truth = g.se2_from_xytheta(np.array([0.15, -0.1, 0.05]))
     source = g.apply(g.inverse(truth), room)
     params = reg.RegistrationParams(dim=2, max_correspondence=0.5, scales=(2.0, 1.0, 0.5))
-    est, res = reg.register_pair(source, room, None, params)
+    est, res = reg.align_frames(source, room, None, params)
     assert est.shape == (3, 3) and res.fitness > 0.9
     assert_se2(est[None])
     np.testing.assert_allclose(est, truth, atol=1e-4)
@@ -212,9 +212,9 @@ def test_yaw_search_recovers_a_turn_beyond_icps_basin(v1_pose0) -> None:
     moved = g.apply(g.inverse(turn), src)  # target = turn . moved
     default = reg.resolve_params(v1_pose0, ClassicalConfig())
     params = dataclasses.replace(default, global_match=None)  # ICP alone
-    plain, _ = reg.register_pair(moved, tgt, None, params)
-    searched, _ = reg.register_pair(moved, tgt, None, dataclasses.replace(params, yaw_search=reg.yaw_offsets(90, 10)))
-    matched, _ = reg.register_pair(moved, tgt, None, default)  # the default on 2D data: global scan match
+    plain, _ = reg.align_frames(moved, tgt, None, params)
+    searched, _ = reg.align_frames(moved, tgt, None, dataclasses.replace(params, yaw_search=reg.yaw_offsets(90, 10)))
+    matched, _ = reg.align_frames(moved, tgt, None, default)  # the default on 2D data: global scan match
 
     def yaw_error(t: np.ndarray) -> float:
         return abs(float(np.degrees(g.so2_angle(g.rotation(g.relative(turn, t))))))
@@ -298,10 +298,10 @@ def test_keep_guess_where_weak_resets_the_slide_along_a_wall() -> None:
 def test_icp_reports_when_it_keeps_its_guess() -> None:
     pts = _wall_cloud(np.random.default_rng(0))
     params = reg.RegistrationParams(dim=3, max_correspondence=0.05, scales=(1.0,), min_fitness=0.1)
-    far, res = reg.register_pair(pts + np.array([50.0, 0.0, 0.0]), pts, None, params)
+    far, res = reg.align_frames(pts + np.array([50.0, 0.0, 0.0]), pts, None, params)
     assert res.kept_guess and res.fitness == 0.0
     np.testing.assert_allclose(far, np.eye(4))
-    _, res = reg.register_pair(pts + np.array([0.01, 0.0, 0.0]), pts, None, params)
+    _, res = reg.align_frames(pts + np.array([0.01, 0.0, 0.0]), pts, None, params)
     assert not res.kept_guess and res.fitness > 0.9
 
 

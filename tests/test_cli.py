@@ -166,13 +166,13 @@ def test_output_paths_are_checked_before_the_run(
     message: str,
 ) -> None:
     """Before: `--out` naming an existing file failed only after the whole run."""
-    import strep_core.pipeline
+    import strep_core.runner
 
     def never(*args: object, **kwargs: object) -> None:
         raise AssertionError("the run started")
 
-    monkeypatch.setattr(strep_core.pipeline, "run_input", never)
-    monkeypatch.setattr(strep_core.pipeline, "load_input", never)
+    monkeypatch.setattr(strep_core.runner, "run_input", never)
+    monkeypatch.setattr(strep_core.runner, "load_input", never)
     taken = tmp_path / "taken"
     if make == "file":
         taken.write_text("mine")

@@ -11,12 +11,12 @@ import torch
 
 from strep_core import geometry as g
 from strep_core import metrics
+from strep_core.artifacts import load_model, save_model
 from strep_core.config import LossConfig, RunConfig
 from strep_core.errors import Cancelled
 from strep_core.events import CallbackSink, CancelToken, ListSink
-from strep_core.methods import run
-from strep_core.model import linked_chain
-from strep_core.optimize import StrepModel, load_model, save_model
+from strep_core.model import StrepModel, linked_chain
+from strep_core.runner import run
 from strep_core.sequence import Sequence
 
 
@@ -236,7 +236,7 @@ def test_occupancy_warmup_learns_the_map_without_moving_the_poses(small: Sequenc
 
 
 def test_batches_cover_every_neighbour_pair_and_report_every_frame(small: Sequence) -> None:
-    from strep_core.optimize import batch_schedule
+    from strep_core.batching import batch_schedule
 
     batches = batch_schedule(48, 16, 2)
     covered = {(i, j) for b in batches for i in b for j in b if 0 < abs(i - j) <= 2}

@@ -129,12 +129,26 @@ def test_job_writes_its_recording(client: TestClient, tmp_path: Path) -> None:
     # atomic: no temporary left beside the result files
     names = {p.name for p in client.app.state.service.jobs.result_dir(job["id"]).iterdir()}
     assert names == set(done["files"])
+    # the scene its worker wrote (the service reads this, never the upload): the frames it registered
+    scene = client.app.state.service.loader.load(job["id"])
+    assert client.app.state.service.jobs.scene_path(job["id"]).is_file()
+    assert (len(scene), scene.name) == (FRAMES, "sim2d-small")
+    np.testing.assert_array_equal(scene.indices, read_tum(tmp_path / "t.tum").stamps)
 
 
 # ---- a comparison: combined recording and the live viewer ------------------------------------
 
 
-def test_comparison_recording_and_viewer(client: TestClient, tmp_path: Path) -> None:
+def test_comparison_recording_and_viewer(client: TestClient, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # the viewer and the recordings read the scenes the workers wrote: this process reads no input
+    import strep_core.io
+    import strep_core.samples
+
+    def never(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the service process read an input")
+
+    monkeypatch.setattr(strep_core.samples, "load_sample", never)
+    monkeypatch.setattr(strep_core.io, "load_sequence", never)
     service = client.app.state.service
     viewer = service.viewer
     iterations = 12

@@ -10,7 +10,7 @@ import pytest
 from strep_core import profiles
 from strep_core.config import RunConfig
 from strep_core.errors import ConfigError
-from strep_core.methods import run
+from strep_core.runner import run
 
 
 @pytest.fixture(scope="module")
@@ -80,7 +80,7 @@ def test_a_config_json_from_the_benchmark_reruns_to_the_same_ate(shared_data: Pa
     """A 7-Scenes row (reader option stride 8, frames 0:16): its recorded input and config
     reproduce its ATE through the same path as `strep run INPUT --config config.json`."""
     from strep_core.bench import _sevenscenes, run_case
-    from strep_core.pipeline import run_input
+    from strep_core.runner import run_input
 
     case = next(c for c in _sevenscenes(shared_data, quick=True) if c.name == "7scenes[0:16]")
     (row,) = run_case(case, ["icp"], quick=True)

@@ -295,7 +295,7 @@ def test_bench_reports_a_dead_ray_task_as_a_failed_run(ray_runtime: None) -> Non
         os._exit(3)  # the Ray worker running this task dies
 
     def sample() -> Any:
-        from strep_core.pipeline import load_input
+        from strep_core.runner import load_input
 
         return load_input("sample:sim2d-small", frames="0:8")
 

@@ -31,9 +31,9 @@ from strep_core.cli import main
 from strep_core.config import RunConfig
 from strep_core.errors import ConfigError, FormatError, SequenceError
 from strep_core.io import read_conf, read_depth_folder
-from strep_core.methods import run
 from strep_core.metrics import pairwise_errors, point_l2
 from strep_core.result import Result
+from strep_core.runner import run
 from strep_core.sequence import Sequence
 
 FX = FY = 585.0

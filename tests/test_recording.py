@@ -11,8 +11,8 @@ from app.rrd import ComparisonRecorder, RerunRecorder, cli_sink, read_recording,
 from app.viewer.scene import poses_to_matrices
 from strep_core.config import RunConfig
 from strep_core.events import ListSink, MultiSink, ResultEvent
-from strep_core.methods import available, run
-from strep_core.pipeline import load_input
+from strep_core.methods import available
+from strep_core.runner import load_input, run
 
 
 @pytest.fixture(scope="module")

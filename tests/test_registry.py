@@ -11,7 +11,8 @@ from strep_core import geometry as g
 from strep_core.config import RunConfig
 from strep_core.errors import Cancelled, ConfigError, MethodError
 from strep_core.events import CancelToken, IterationEvent, ListSink, ResultEvent, StartEvent, parse_event
-from strep_core.methods import available, run
+from strep_core.methods import available
+from strep_core.runner import run
 from strep_core.sequence import Sequence
 
 

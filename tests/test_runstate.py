@@ -9,8 +9,7 @@ import pytest
 
 from strep_core.config import RunConfig
 from strep_core.events import PROGRESS_KINDS, ListSink, ResultEvent, StageEvent, progress_events
-from strep_core.methods import run
-from strep_core.pipeline import load_input
+from strep_core.runner import load_input, run
 from strep_core.runstate import REDUCERS, History, RunState, apply
 
 

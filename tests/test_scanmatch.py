@@ -87,7 +87,7 @@ def test_icp_uses_the_global_match_on_2d_data_only(shared_data) -> None:
     seq = read_carmen(shared_data / "carmen" / "belgioioso-corrected.log.gz", frames="109:111")
     params = reg.resolve_params(seq, ClassicalConfig())
     assert params.global_match is not None
-    found, _ = reg.register_pair(seq.frames[1], seq.frames[0], None, params)
+    found, _ = reg.align_frames(seq.frames[1], seq.frames[0], None, params)
     truth = g.relative(seq.poses[0], seq.poses[1])
     yaw_err, t_err = _errors(truth, found)
     assert yaw_err <= 1.0 and t_err <= 0.05, (yaw_err, t_err)

@@ -10,8 +10,8 @@ from strep_core import losses
 from strep_core.config import SCRATCH_PROFILE, RunConfig
 from strep_core.errors import ConfigError
 from strep_core.events import ListSink
-from strep_core.methods import run
 from strep_core.model import OccupancyMLP
+from strep_core.runner import run
 from strep_core.samples import load_sample
 
 FRAMES = "0:32"

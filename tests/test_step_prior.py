@@ -25,18 +25,18 @@ AFTER_TURNS = [_step(1.0, 2.0), _step(0.96, -1.0), _step(0.02, 30.0), _step(0.03
 
 
 def test_step_prior_after_turns_in_place_is_the_moving_step() -> None:
-    old = reg._step_prior(AFTER_TURNS)
-    new = reg._step_prior(AFTER_TURNS, stop=0.25)
+    old = reg.step_prior(AFTER_TURNS)
+    new = reg.step_prior(AFTER_TURNS, stop=0.25)
     assert old is not None and new is not None
     assert abs(old[0, 3] - 0.03) < 1e-9  # the median of the last 5: a stop
     assert abs(new[0, 3] - 0.98) < 1e-9  # the median of the last longer steps
     assert np.allclose(new[:3, :3], np.eye(3))  # no turn
     # a median that is not a stop stays as it was
     moving = [_step(1.0, 0.0), _step(0.9, 0.0), _step(0.02, 30.0), _step(1.1, 0.0), _step(1.05, 0.0)]
-    assert np.allclose(reg._step_prior(moving, stop=0.25), reg._step_prior(moving))
+    assert np.allclose(reg.step_prior(moving, stop=0.25), reg.step_prior(moving))
     # only stops so far: nothing to take instead
     stops = AFTER_TURNS[2:]
-    assert np.allclose(reg._step_prior(stops, stop=0.25), reg._step_prior(stops))
+    assert np.allclose(reg.step_prior(stops, stop=0.25), reg.step_prior(stops))
 
 
 def test_corridor_pair_after_turns_in_place_keeps_the_step() -> None:
@@ -61,8 +61,8 @@ def test_corridor_pair_after_turns_in_place_keeps_the_step() -> None:
     clouds = reg.prepare_frames(seq, params)
     steps = {}
     for name, s in (("default", stop), ("off", 0.0)):
-        prior = reg._step_prior(AFTER_TURNS, stop=s)
-        res = reg.register_with(clouds[1], clouds[0], np.eye(4), params, prior=prior)
+        prior = reg.step_prior(AFTER_TURNS, stop=s)
+        res = reg.icp_pair(clouds[1], clouds[0], np.eye(4), params, prior=prior)
         steps[name] = float(res.transformation[0, 3])
         assert abs(res.transformation[1, 3]) < 0.05  # across the corridor: the walls fix it
     assert abs(steps["default"] - 1.0) < 0.15, steps

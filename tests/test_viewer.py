@@ -16,8 +16,7 @@ from app.viewer.scene import display_anchor, poses_to_matrices, rotations_to_wxy
 from strep_core import geometry as g
 from strep_core.config import RunConfig
 from strep_core.events import IterationEvent, ListSink, MultiSink, StageEvent, StartEvent, pose_list
-from strep_core.methods import run
-from strep_core.pipeline import load_input
+from strep_core.runner import load_input, run
 from strep_core.runstate import History, Snapshot, stage_line
 
 MAX_POINTS = 8_000

@@ -67,7 +67,7 @@ class Service:
         self.broadcaster = Broadcaster()
         self.sequences = SequenceService(settings, self.store, self.ctx)
         self.jobs = JobService(settings, self.store, self.broadcaster, self.sequences, self.ctx)
-        self.loader = SequenceLoader(self.sequences, settings.max_inflated_bytes, max_points=settings.max_points)
+        self.loader = SequenceLoader(self.jobs.scene_path)  # the scenes the workers wrote
         self.recordings = ComparisonRecordings(settings, self.store, self.loader)
         self.broadcaster.listen(self.recordings.on_events)
         self.viewer: ViewerServer | None = None

@@ -3,9 +3,9 @@
 Every job's worker records its own ``recording.rrd``. A comparison's recording is written
 by the service when the comparison's last job has finished: `ComparisonRecordings` listens
 to the event stream (`Broadcaster.listen`), and on a job's final status checks, on its own
-thread, whether the job's comparison is complete; if so it reads the sequence and the jobs'
-stored events and writes ``results/<comparison id>/recording.rrd`` with
-`app.rrd.write_recording` (to a temporary name, renamed into place). Nothing of this
+thread, whether the job's comparison is complete; if so it reads the scene one of its jobs'
+workers wrote and the jobs' stored events and writes ``results/<comparison id>/recording.rrd``
+with `app.rrd.write_recording` (to a temporary name, renamed into place). Nothing of this
 runs on the supervisor thread or on the event loop.
 
 A comparison whose recording is missing (it finished before this existed, or the service
@@ -22,9 +22,10 @@ from pathlib import Path
 from typing import Literal
 
 from app.core.config import Settings
-from app.services.loader import SequenceLoader
+from app.services.loader import SequenceGone, SequenceLoader
 from app.store import ACTIVE_STATUSES, Store, StoredEvent
 from strep_core.events import PROGRESS_KINDS
+from strep_core.sequence import Sequence
 
 log = logging.getLogger("strep.service")
 
@@ -132,18 +133,28 @@ class ComparisonRecordings:
             raise LookupError(f"comparison {comparison_id!r} not found")
         rows, _ = self.store.list_jobs(comparison_id=comparison_id, limit=1000, newest_first=False)
         runs: dict[str, list[StoredEvent]] = {}
+        progressed: list[str] = []
         for row in rows:
             events = self._progress_events(row["id"])
             if events:
                 runs[row["method"]] = events
+                progressed.append(row["id"])
         if not runs:
             raise NothingRecorded("no job of this comparison reported any progress")
-        frames = rows[0]["config"].get("frames") if rows else None
-        seq = self.loader.load(comparison["sequence_id"], frames)
+        seq = self._scene(progressed)
         path = write_recording(self.path(comparison_id), recording_id=comparison_id, sequence=seq, runs=runs)
         self.written += 1
         log.info("comparison %s: %s written (%s)", comparison_id, RECORDING, ", ".join(runs))
         return path
+
+    def _scene(self, job_ids: list[str]) -> Sequence:
+        """The scene the first of these jobs' workers wrote (the jobs of a comparison share one input)."""
+        for job_id in job_ids:
+            try:
+                return self.loader.load(job_id)
+            except SequenceGone:
+                continue
+        raise SequenceGone("no job of this comparison got as far as reading its input")
 
     def _progress_events(self, job_id: str) -> list[StoredEvent]:
         out: list[StoredEvent] = []

@@ -1,8 +1,8 @@
 """Where jobs run: the executor seam behind `app.services.jobs.JobService`.
 
 An executor starts one job and hands back two things the supervisor already knows how to
-watch: a `multiprocessing` connection that carries the job's messages (``("event", ...)``
-tuples, then ``("done", status, error, metrics, files)``, see `app.services.worker`) and a
+watch: a `multiprocessing` connection that carries the job's messages (`EventMessage` s, then
+a `DoneMessage`: `app.services.protocol`) and a
 `WorkerHandle` with the shape of a process (``sentinel``, ``exitcode``, ``terminate``,
 ``kill``, ...). Storage, live streams, cancel deadlines and reaping stay in the supervisor, the
 same for every executor.
@@ -35,6 +35,7 @@ from multiprocessing.synchronize import Event as MpEvent
 from typing import Any, Protocol
 
 from app.core.config import RAY_MISSING, Settings
+from app.services.protocol import JobSpec, PidMessage
 from app.services.sequences import describe_exit
 from app.services.worker import run_job
 
@@ -84,7 +85,7 @@ class Executor(Protocol):
     def start(self) -> None:
         """Prepare to launch jobs (connect to a cluster); called once before the first `launch`."""
 
-    def launch(self, spec: dict[str, Any], device: str) -> tuple[WorkerHandle, multiprocessing.connection.Connection]:
+    def launch(self, spec: JobSpec, device: str) -> tuple[WorkerHandle, multiprocessing.connection.Connection]:
         """Start ``run_job(spec, ...)``; the job's messages arrive on the returned connection."""
 
     def close(self) -> None:
@@ -143,10 +144,10 @@ class LocalExecutor:
     def start(self) -> None:
         pass
 
-    def launch(self, spec: dict[str, Any], device: str) -> tuple[LocalWorker, multiprocessing.connection.Connection]:
+    def launch(self, spec: JobSpec, device: str) -> tuple[LocalWorker, multiprocessing.connection.Connection]:
         parent, child = self.ctx.Pipe(duplex=False)
         cancel = self.ctx.Event()
-        proc = self.ctx.Process(target=run_job, args=(spec, child, cancel), name=f"strep-{spec['job_id']}", daemon=True)
+        proc = self.ctx.Process(target=run_job, args=(spec, child, cancel), name=f"strep-{spec.job_id}", daemon=True)
         try:
             proc.start()
         except BaseException:
@@ -177,14 +178,14 @@ class JobActor:
     def cancel(self) -> None:
         self._cancel.set()
 
-    def run(self, spec: dict[str, Any], env: dict[str, str]) -> Any:
-        """Yield ``("pid", pid)``, then every message `run_job` sends, ``done`` last.
+    def run(self, spec: JobSpec, env: dict[str, str]) -> Any:
+        """Yield a `PidMessage`, then every message `run_job` sends, the `DoneMessage` last.
 
         ``env``: the service's ``STREP_*`` variables (a worker of a cluster started elsewhere
         does not inherit them), set in this process before the job starts.
         """
         os.environ.update(env)
-        yield ("pid", os.getpid())
+        yield PidMessage(pid=os.getpid())
         recv, send = multiprocessing.Pipe(duplex=False)
         thread = threading.Thread(target=run_job, args=(spec, send, self._cancel), name="strep-job", daemon=True)
         thread.start()
@@ -247,8 +248,8 @@ class RayWorker:
         try:
             for ref in self.stream:
                 message = ray.get(ref)
-                if message[0] == "pid":
-                    self.pid = int(message[1])
+                if isinstance(message, PidMessage):
+                    self.pid = message.pid
                 try:
                     self.conn.send(message)
                 except (OSError, ValueError):  # the supervisor closed its end: the service is stopping
@@ -359,10 +360,10 @@ class RayExecutor:
             log.info("jobs run on Ray (%s): %s", address, ray.cluster_resources())
         self._actor_class = ray.remote(max_concurrency=2)(JobActor)  # type: ignore[call-overload]  # valid for classes
 
-    def launch(self, spec: dict[str, Any], device: str) -> tuple[RayWorker, multiprocessing.connection.Connection]:
+    def launch(self, spec: JobSpec, device: str) -> tuple[RayWorker, multiprocessing.connection.Connection]:
         import ray
 
-        resources = ray_resources(device, int(spec["threads"]))
+        resources = ray_resources(device, spec.threads)
         self._warn_if_infeasible(resources)
         actor = self._actor_class.options(**resources).remote()
         try:
@@ -371,7 +372,7 @@ class RayExecutor:
         except BaseException:
             ray.kill(actor, no_restart=True)
             raise
-        return RayWorker(actor, stream, child, spec["job_id"]), parent
+        return RayWorker(actor, stream, child, spec.job_id), parent
 
     def _warn_if_infeasible(self, resources: dict[str, float]) -> None:
         """Log when no node is as large as the request: Ray then waits for one (an autoscaler may add it)."""

@@ -34,6 +34,8 @@ from pydantic import ValidationError
 from app.core.config import Settings
 from app.services.broadcast import Broadcaster
 from app.services.executors import WorkerHandle, make_executor
+from app.services.protocol import DoneMessage, EventMessage, JobSpec, PidMessage, parse_message
+from app.services.scenes import SCENE
 from app.services.sequences import SequenceService, new_id
 from app.store import EventIn, StatusChange, Store, StoredEvent, now_iso
 from strep_core.config import RunConfig
@@ -91,6 +93,10 @@ class JobService:
 
     def result_dir(self, job_id: str) -> Path:
         return self.settings.results_dir / job_id
+
+    def scene_path(self, job_id: str) -> Path:
+        """The frames the job registers, written by its worker (`app.services.scenes`)."""
+        return self.settings.data_dir / "jobs" / job_id / SCENE
 
     # ---- life cycle ------------------------------------------------------------------------
     def start(self) -> None:
@@ -282,17 +288,15 @@ class JobService:
             for _ in range(MAX_MESSAGES_PER_ROUND):
                 if not w.conn.poll():
                     return
-                msg = w.conn.recv()
-                if msg[0] == "event":
-                    _, kind, data, emitted = msg
-                    items.append(EventIn(w.job_id, str(kind), str(data), float(emitted)))
-                elif msg[0] == "done":
-                    _, status, error, metrics, files = msg
+                msg = parse_message(w.conn.recv())
+                if isinstance(msg, EventMessage):
+                    items.append(EventIn(w.job_id, msg.event_kind, msg.data, msg.emitted))
+                elif isinstance(msg, DoneMessage):
                     w.done = True
-                    fields: tuple[tuple[str, Any], ...] = (("metrics", metrics), ("files", files))
-                    items.append(StatusChange(w.job_id, ("running",), status, error, fields))
-                elif msg[0] == "pid":  # a Ray worker's process, known once its actor has started
-                    self.store.set_job_fields(w.job_id, pid=int(msg[1]))
+                    fields: tuple[tuple[str, Any], ...] = (("metrics", msg.metrics), ("files", msg.files))
+                    items.append(StatusChange(w.job_id, ("running",), msg.status, msg.error, fields))
+                elif isinstance(msg, PidMessage):  # a Ray worker's process, known once its actor has started
+                    self.store.set_job_fields(w.job_id, pid=msg.pid)
         except (EOFError, OSError):
             w.eof = True
         except Exception:  # an unreadable message: treat the worker as broken
@@ -411,23 +415,24 @@ class JobService:
             config = config.model_copy(update={"from_model": str(model)})
         if not self._store_and_publish([StatusChange(job_id, ("queued",), "running")]):
             return False  # cancelled meanwhile
-        spec = {
-            "job_id": job_id,
-            "source": path,
-            "selection": selection,
-            "sequence_name": self.sequences.name_of(job["sequence_id"]),  # not "sequence", the stored name
-            "config": config.model_dump_json(),
-            "tmp_dir": str(self.tmp_results / job_id),
-            "out_dir": str(self.result_dir(job_id)),
-            "log_path": str(self.settings.logs_dir / f"{job_id}.log"),
-            "threads": self.settings.threads_per_job(),
-            "nice": self.settings.worker_nice,
-            "max_extract_bytes": self.settings.max_inflated_bytes,
-            "max_points": self.settings.max_points,
+        spec = JobSpec(
+            job_id=job_id,
+            source=str(path),
+            selection=selection,
+            sequence_name=self.sequences.name_of(job["sequence_id"]),  # not "sequence", the stored name
+            config=config.model_dump_json(),
+            scene_path=str(self.scene_path(job_id)),
+            tmp_dir=str(self.tmp_results / job_id),
+            out_dir=str(self.result_dir(job_id)),
+            log_path=str(self.settings.logs_dir / f"{job_id}.log"),
+            threads=self.settings.threads_per_job(),
+            nice=self.settings.worker_nice,
+            max_extract_bytes=self.settings.max_inflated_bytes,
+            max_points=self.settings.max_points,
             # a worker killed mid-extraction leaves it in its tmp_dir, removed when the job ends
-            "extract_dir": str(self.tmp_results / job_id),
-            "plugins": list(self.settings.plugins),
-        }
+            extract_dir=str(self.tmp_results / job_id),
+            plugins=list(self.settings.plugins),
+        )
         try:
             proc, conn = self.executor.launch(spec, config.device)
         except Exception as exc:

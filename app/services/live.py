@@ -8,12 +8,13 @@ Threads::
                               running, parses its progress events and hands them to the
                               job's viewer sink (a short lock, no viser call), answers
                               "show this job/comparison" requests
-    strep-live-load           reads a job's sequence (`SequenceLoader`); meanwhile the job's
-                              events wait in a bounded buffer
+    strep-live-load           reads a job's scene (`SequenceLoader`: the frames its worker
+                              wrote) once the job is past reading its input; meanwhile the
+                              job's events wait in a bounded buffer
     viewer pusher             draws (inside `ViewerServer`, at most max_rate_hz per job)
 
-So the supervisor never waits for the viewer, a slow read of a big sequence delays only
-that job's first frame, and the viewer sees the same events, in the same order, as the
+So the supervisor never waits for the viewer, a slow read of a big input delays only that
+job's first frame, and the viewer sees the same events, in the same order, as the
 store and the SSE streams. A job joins the viewer under its comparison (``group``), so the
 methods of a comparison are drawn side by side. A newly started run is shown at once unless
 another run that is still going is on screen.
@@ -25,6 +26,7 @@ a live run.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import threading
@@ -61,11 +63,10 @@ class _Feed:
     job_id: str
     method: str
     group: str
-    sequence_id: str
-    frames: str | None
     live: bool  # registered when it started running (else: reopened from the store)
     final: bool = False
     state: str = "loading"  # loading | ready | failed
+    requested: bool = False  # its scene asked of the loader (once the worker has written it)
     buffer: list[Event] = field(default_factory=list)
     sink: Any = None
     last_id: int = 0  # id of the last stored event taken (older ones are skipped)
@@ -97,7 +98,6 @@ class LiveFeed:
         self._cond = threading.Condition()
         self._stopping = False
         self._feeds: dict[str, _Feed] = {}
-        self._loading: dict[tuple[str, str | None], list[str]] = {}
         self._shows: list[_Show] = []
         self._titles: dict[str, str] = {}
         self._loads = ThreadPoolExecutor(max_workers=1, thread_name_prefix="strep-live-load")
@@ -204,7 +204,9 @@ class LiveFeed:
                 if status == "running":
                     self._begin(ev)
                 elif status in FINAL_STATUSES and ev.job_id in self._feeds:
-                    self._feeds[ev.job_id].final = True
+                    ended = self._feeds[ev.job_id]
+                    ended.final = True
+                    self._request_load(ended)  # (a job that never got past its input: the load says so)
                 continue
             feed = self._feeds.get(ev.job_id)
             if feed is None or ev.id <= feed.last_id or ev.kind not in PROGRESS_KINDS:
@@ -219,6 +221,8 @@ class LiveFeed:
                 feed.sink.emit(event)
             elif feed.state == "loading":
                 self._buffer(feed, event)
+                if _past_input(event):
+                    self._request_load(feed)
 
     def _begin(self, ev: StoredEvent) -> None:
         existing = self._feeds.get(ev.job_id)
@@ -230,17 +234,13 @@ class LiveFeed:
             return
         feed = self._new_feed(job, live=True)
         feed.last_id = ev.id
-        self._feeds[feed.job_id] = feed
-        self._request_load(feed)
+        self._feeds[feed.job_id] = feed  # its scene is loaded once the worker is past its input
 
     def _new_feed(self, job: dict[str, Any], *, live: bool) -> _Feed:
-        frames = job["config"].get("frames") if isinstance(job["config"], dict) else None
         return _Feed(
             job_id=job["id"],
             method=job["method"],
             group=job["comparison_id"] or job["id"],
-            sequence_id=job["sequence_id"],
-            frames=frames or None,
             live=live,
             final=job["status"] in FINAL_STATUSES,
         )
@@ -254,48 +254,45 @@ class LiveFeed:
             feed.buffer = [e for i, e in enumerate(feed.buffer) if i not in drop]
 
     def _request_load(self, feed: _Feed) -> None:
-        key = (feed.sequence_id, feed.frames)
-        waiting = self._loading.get(key)
-        if waiting is not None:
-            waiting.append(feed.job_id)
+        if feed.requested or feed.state != "loading":
             return
-        self._loading[key] = [feed.job_id]
-        try:
-            self._loads.submit(self._load, key)
-        except RuntimeError:  # shutting down
-            self._loading.pop(key, None)
+        feed.requested = True
+        with contextlib.suppress(RuntimeError):  # shutting down
+            self._loads.submit(self._load, feed.job_id)
 
-    def _load(self, key: tuple[str, str | None]) -> None:
-        """On the loader thread: read the sequence, post the outcome back to the feed."""
+    def _load(self, job_id: str) -> None:
+        """On the loader thread: read the job's scene, post the outcome back to the feed."""
         try:
-            seq = self.loader.load(*key)
+            seq = self.loader.load(job_id)
         except Exception as exc:
-            log.warning("viewer feed: cannot read sequence %s: %s", key[0], exc)
-            self._post(("loaded", key, None, str(exc) or type(exc).__name__))
+            log.warning("viewer feed: cannot read the scene of %s: %s", job_id, exc)
+            self._post(("loaded", job_id, None, str(exc) or type(exc).__name__))
             return
-        self._post(("loaded", key, seq, None))
+        self._post(("loaded", job_id, seq, None))
 
-    def _on_loaded(self, key: tuple[str, str | None], seq: Sequence | None, error: str | None) -> None:
-        for job_id in self._loading.pop(key, []):
-            feed = self._feeds.get(job_id)
-            if feed is None or feed.state != "loading":
-                continue
+    def _on_loaded(self, job_id: str, seq: Sequence | None, error: str | None) -> None:
+        feed = self._feeds.get(job_id)
+        if feed is not None and feed.state == "loading":
             if seq is None:
                 feed.state, feed.error, feed.buffer = "failed", error, []
-                continue
-            select = self._should_select(feed.group) if feed.live else False
-            feed.sink = self.viewer.load_job(
-                feed.job_id,
-                feed.method,
-                seq,
-                feed.buffer,
-                group=feed.group,
-                group_title=self._title(feed, seq),
-                select=select,
-            )
-            feed.buffer = []
-            feed.state = "ready"
+            else:
+                self._ready(feed, seq)
         self._check_shows()
+
+    def _ready(self, feed: _Feed, seq: Sequence) -> None:
+        """The scene is loaded: the job joins the viewer with the events buffered meanwhile."""
+        select = self._should_select(feed.group) if feed.live else False
+        feed.sink = self.viewer.load_job(
+            feed.job_id,
+            feed.method,
+            seq,
+            feed.buffer,
+            group=feed.group,
+            group_title=self._title(feed, seq),
+            select=select,
+        )
+        feed.buffer = []
+        feed.state = "ready"
 
     def _title(self, feed: _Feed, seq: Sequence) -> str:
         if feed.group not in self._titles:
@@ -344,7 +341,8 @@ class LiveFeed:
             feed.buffer = events
             feed.last_id = stored[-1].id if stored else 0  # later ones arrive through the inbox
             self._feeds[feed.job_id] = feed
-            self._request_load(feed)
+            if feed.final or any(_past_input(e) for e in events):  # else: once the worker has written it
+                self._request_load(feed)
             shown.append(feed.job_id)
         if not shown:
             what = f"comparison {comparison_id!r}" if comparison_id else f"job {rows[0]['id']!r}"
@@ -381,3 +379,8 @@ class LiveFeed:
                 continue
             show.future.set_result({"group": show.group, "jobs": ready})
         self._shows = waiting
+
+
+def _past_input(event: Event) -> bool:
+    """Whether the job's worker has written its scene: any event after the ``load`` stage."""
+    return not (event.kind == "stage" and event.stage == "load")

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from app.core.config import Settings
+from app.services.protocol import ReadOk, ReadRequest, parse_read_reply
 from app.services.uploads import ReceivedUpload, UploadError
 from app.services.worker import reader_loop
 from app.store import Store, now_iso
@@ -110,24 +111,30 @@ class ReaderProcess:
         """Read ``path`` as a sequence; returns its summary or raises the reader's `StrepError`."""
         with self._lock:
             conn = self._ensure()
-            conn.send((str(path), selection, max_extract_bytes, str(self.extract_dir), max_points))
+            request = ReadRequest(
+                path=str(path),
+                selection=selection,
+                max_extract_bytes=max_extract_bytes,
+                extract_dir=str(self.extract_dir),
+                max_points=max_points,
+            )
+            conn.send(request)
             if not conn.poll(self.timeout):
                 assert self._proc is not None
                 self._proc.kill()
                 self._stop()
                 raise FormatError(f"reading the file took longer than {self.timeout:g} s; it was refused")
             try:
-                reply = conn.recv()
+                reply = parse_read_reply(conn.recv())
             except (EOFError, OSError):
                 code = self._stop()
                 raise FormatError(f"the file could not be read: the reader process {describe_exit(code)}") from None
-        if reply[0] == "ok":
-            return dict(reply[1])
-        _, cls_name, message = reply
-        cls = getattr(core_errors, cls_name, None) or getattr(core_sequence, cls_name, None)
+        if isinstance(reply, ReadOk):
+            return dict(reply.summary)
+        cls = getattr(core_errors, reply.error_class, None) or getattr(core_sequence, reply.error_class, None)
         if not (isinstance(cls, type) and issubclass(cls, StrepError)):
             cls = FormatError
-        raise cls(message)
+        raise cls(reply.message)
 
     def close(self) -> None:
         with self._lock:

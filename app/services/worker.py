@@ -1,21 +1,17 @@
 """Code that runs in child processes (started with the ``spawn`` context).
 
-* `run_job`: one process per job. Loads the input, runs the method with a sink that sends
-  every event through the job's pipe and a `app.recording.RerunRecorder` that records them
-  into ``recording.rrd`` (recording id = job id), writes the other result files into the
-  same temporary folder and renames it into place, then sends a final ``done`` message. The
-  cancel flag is a ``multiprocessing.Event`` the core checks between iterations.
+* `run_job`: one process per job. Runs the job through the core's runner
+  (`strep_core.runner.run_input`): the upload is read here, within the service's limits, and
+  once its frames are selected the scene is written to the job's folder
+  (`app.services.scenes`) and a `app.rrd.RerunRecorder` opens ``recording.rrd``
+  (recording id = job id); every event goes through the job's pipe. The result files are
+  written into a temporary folder renamed into place, then a final `DoneMessage` is sent.
+  The cancel flag is a ``multiprocessing.Event`` the core checks between iterations.
 * `reader_loop`: a long-lived process that reads uploads to validate them, so a reader that
   crashes or runs away never takes the service with it.
 
-This module imports only the standard library at the top: the child sets its thread limits
-before numpy and torch are imported.
-
-Messages on a job's pipe (pickled tuples):
-
-* ``("event", kind, json, t)``: a `strep_core.events` event emitted at ``t`` (``time.time()``);
-* ``("done", status, error, metrics, files)``: ``status`` is ``succeeded``, ``failed`` or
-  ``cancelled``.
+The spec and the messages are the models of `app.services.protocol`. The core (torch
+included) is imported inside the functions, after the child has set its thread limits.
 """
 
 from __future__ import annotations
@@ -33,6 +29,8 @@ import time
 import traceback
 from pathlib import Path
 from typing import Any
+
+from app.services.protocol import DoneMessage, EventMessage, JobSpec, ReadFailed, ReadOk, ReadRequest
 
 RECORDING = "recording.rrd"
 THREAD_ENV = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
@@ -106,7 +104,7 @@ class PipeSink:
         if self.broken:
             return
         try:
-            self.conn.send(("event", event.kind, event.model_dump_json(), time.time()))
+            self.conn.send(EventMessage(event_kind=event.kind, data=event.model_dump_json(), emitted=time.time()))
         except (OSError, ValueError):
             self.broken = True  # the service is gone; the parent watch ends this process
 
@@ -125,7 +123,7 @@ def load_source(
     `strep_core.io.limits`). A ``.zip`` is extracted under ``extract_dir`` (a folder the
     service sweeps), if given. ``options`` go to the reader (`RunConfig.data`).
     """
-    from strep_core.pipeline import load_input
+    from strep_core.runner import load_input
 
     if source.startswith("sample:"):
         return load_input(source, frames=selection, options=options)
@@ -139,109 +137,99 @@ def load_source(
     return load_sequence(source, frames=selection, extract_dir=extract_dir, **limits, **(options or {}))
 
 
-def open_recorder(path: Path, job_id: str, seq: Any, config: Any) -> Any:
-    """The job's Rerun recorder (a sink), or ``None`` when it cannot be opened.
+class JobRecording:
+    """The job's Rerun recording, a sink that must never fail the run.
 
-    A recording is a by-product: failing to open one is written to the job's log and the job
-    runs on without it. ``seq`` is the sequence as loaded; the recorder gets the frames the
-    run registers (``config.frames`` applied, as `strep_core.methods.run` does).
+    A recording is a by-product: failing to open or write one is logged in the job's log and
+    the job runs on without it (the recorder then gets no more events); on exit the recorder
+    is closed, and a recording that cannot be finished is dropped.
     """
-    try:
-        from app.rrd import RerunRecorder, disable_rerun_telemetry
 
-        disable_rerun_telemetry()
-        frames = seq.select(config.frames) if config.frames else seq
-        return RerunRecorder(path, recording_id=job_id, sequence=frames, label=config.method)
-    except Exception:
-        print("recording.rrd cannot be written:", file=sys.stderr)
-        traceback.print_exc()
-        return None
-
-
-class GuardedSink:
-    """Forwards events to a sink that must never fail the run: its first error is logged, then
-    it gets no more events."""
-
-    def __init__(self, sink: Any) -> None:
-        self.sink = sink
-        self.broken = False
-
-    def emit(self, event: Any) -> None:
-        if self.broken:
-            return
+    def __init__(self, path: Path, job_id: str, scene: Any, method: str) -> None:
+        self.recorder: Any = None
         try:
-            self.sink.emit(event)
+            from app.rrd import RerunRecorder, disable_rerun_telemetry
+
+            disable_rerun_telemetry()
+            self.recorder = RerunRecorder(path, recording_id=job_id, sequence=scene, label=method)
         except Exception:
-            self.broken = True
+            print("recording.rrd cannot be written:", file=sys.stderr)
             traceback.print_exc()
 
+    def emit(self, event: Any) -> None:
+        if self.recorder is None:
+            return
+        try:
+            self.recorder.emit(event)
+        except Exception:
+            traceback.print_exc()
+            self._close(discard=True)
 
-def close_recorder(recorder: Any) -> None:
-    """Close a recorder; a recording that cannot be finished is dropped (logged), never fatal."""
-    try:
-        recorder.close(discard=bool(recorder.failed))
-    except Exception:
-        traceback.print_exc()
-        with contextlib.suppress(Exception):
-            recorder.close(discard=True)
-        Path(recorder.tmp_path).unlink(missing_ok=True)
+    def __enter__(self) -> JobRecording:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.recorder is not None:  # normally closed already by the ResultEvent
+            self._close(discard=bool(self.recorder.failed))
+
+    def _close(self, *, discard: bool) -> None:
+        recorder, self.recorder = self.recorder, None
+        try:
+            recorder.close(discard=discard)
+        except Exception:
+            traceback.print_exc()
+            with contextlib.suppress(Exception):
+                recorder.close(discard=True)
+            Path(recorder.tmp_path).unlink(missing_ok=True)
 
 
-def run_job(spec: dict[str, Any], conn: multiprocessing.connection.Connection, cancel: Any) -> None:
-    """Entry point of a job's process. ``spec`` is built by `app.services.jobs.JobService`."""
+def run_job(spec: JobSpec, conn: multiprocessing.connection.Connection, cancel: Any) -> None:
+    """Entry point of a job's process; see the module docstring."""
     _watch_parent()
-    _lower_priority(spec.get("nice", 0))
-    _limit_threads(spec["threads"])
-    _redirect_output(spec.get("log_path"))
-    tmp_dir = Path(spec["tmp_dir"])
-    out_dir = Path(spec["out_dir"])
-    message: tuple[Any, ...]
+    _lower_priority(spec.nice)
+    _limit_threads(spec.threads)
+    _redirect_output(spec.log_path)
+    tmp_dir = Path(spec.tmp_dir)
+    message: DoneMessage
     try:
-        _import_plugins(spec.get("plugins", []))
+        _import_plugins(spec.plugins)
+        from app.services.scenes import write_scene
         from strep_core.config import RunConfig
         from strep_core.errors import Cancelled, StrepError
-        from strep_core.events import MultiSink, StageEvent
-        from strep_core.methods import run
-        from strep_core.pipeline import write_outputs
+        from strep_core.runner import run_input
 
         try:
-            config = RunConfig.model_validate_json(spec["config"])
+            config = RunConfig.model_validate_json(spec.config)
             if config.threads is None:
-                config = config.model_copy(update={"threads": spec["threads"]})
-            started = time.perf_counter()
-            PipeSink(conn).emit(StageEvent(stage="load", elapsed=0.0))
-            seq = load_source(
-                spec["source"],
-                spec.get("selection"),
-                spec["max_extract_bytes"],
-                spec.get("extract_dir"),
-                spec.get("max_points"),
-                config.data.options(),
-            )
-            if spec.get("sequence_name"):  # an upload: its name, not its stored file's ("sequence")
-                seq.name = spec["sequence_name"]
-            if tmp_dir.exists():
-                shutil.rmtree(tmp_dir)
-            tmp_dir.mkdir(parents=True)
-            recorder = open_recorder(tmp_dir / RECORDING, spec["job_id"], seq, config)
-            sink = PipeSink(conn) if recorder is None else MultiSink([PipeSink(conn), GuardedSink(recorder)])
-            try:
-                result = run(seq, config, sink=sink, cancel=cancel)
-            finally:
-                if recorder is not None:
-                    close_recorder(recorder)  # normally closed already by the ResultEvent
-            PipeSink(conn).emit(StageEvent(stage="write", elapsed=time.perf_counter() - started))
-            files = sorted({*write_outputs(result, tmp_dir), *([RECORDING] if (tmp_dir / RECORDING).is_file() else [])})
-            os.replace(tmp_dir, out_dir)  # all files appear at once, never half-written
-            metrics = _finite(result.metrics)
-            message = ("done", "succeeded", None, metrics, files)
+                config = config.model_copy(update={"threads": spec.threads})
+
+            def read(options: dict[str, Any]) -> Any:
+                seq = load_source(
+                    spec.source, spec.selection, spec.max_extract_bytes, spec.extract_dir, spec.max_points, options
+                )
+                if spec.sequence_name:  # an upload: its name, not its stored file's ("sequence")
+                    seq.name = spec.sequence_name
+                return seq
+
+            def job_sinks(scene: Any) -> list[Any]:
+                """Once the frames are selected: the scene for the service, the recording."""
+                write_scene(scene, spec.scene_path)
+                if tmp_dir.exists():
+                    shutil.rmtree(tmp_dir)
+                tmp_dir.mkdir(parents=True)
+                return [JobRecording(tmp_dir / RECORDING, spec.job_id, scene, config.method)]
+
+            result = run_input(read, config, out_dir=tmp_dir, sink=PipeSink(conn), sinks=job_sinks, cancel=cancel)
+            files = sorted({*result.files, *([RECORDING] if (tmp_dir / RECORDING).is_file() else [])})
+            os.replace(tmp_dir, spec.out_dir)  # all files appear at once, never half-written
+            message = DoneMessage(status="succeeded", metrics=_finite(result.metrics), files=files)
         except Cancelled as exc:
-            message = ("done", "cancelled", str(exc) or "cancelled", None, [])
+            message = DoneMessage(status="cancelled", error=str(exc) or "cancelled")
         except StrepError as exc:
-            message = ("done", "failed", str(exc) or type(exc).__name__, None, [])
+            message = DoneMessage(status="failed", error=str(exc) or type(exc).__name__)
     except BaseException as exc:  # report anything, then exit non-zero
         traceback.print_exc()
-        message = ("done", "failed", f"{type(exc).__name__}: {exc}", None, [])
+        message = DoneMessage(status="failed", error=f"{type(exc).__name__}: {exc}")
     finally:
         sys.stdout.flush()
         sys.stderr.flush()
@@ -266,11 +254,7 @@ def summarize(seq: Any) -> dict[str, Any]:
 
 
 def reader_loop(conn: multiprocessing.connection.Connection, plugins: list[str], nice: int = 0) -> None:
-    """Serve read requests ``(path, selection, max_extract_bytes, extract_dir, max_points)`` until
-    the pipe closes.
-
-    Replies ``("ok", summary)`` or ``("error", error class name, message)``.
-    """
+    """Serve `ReadRequest` s until the pipe closes; each gets a `ReadOk` or a `ReadFailed`."""
     _watch_parent()
     _lower_priority(nice)
     _limit_threads(1)
@@ -279,18 +263,26 @@ def reader_loop(conn: multiprocessing.connection.Connection, plugins: list[str],
 
     while True:
         try:
-            path, selection, max_bytes, extract_dir, max_points = conn.recv()
+            request = ReadRequest.model_validate(conn.recv())
         except (EOFError, OSError):
             return
+        reply: ReadOk | ReadFailed
         try:
-            reply: tuple[Any, ...] = ("ok", summarize(load_source(path, selection, max_bytes, extract_dir, max_points)))
+            seq = load_source(
+                request.path, request.selection, request.max_extract_bytes, request.extract_dir, request.max_points
+            )
+            reply = ReadOk(summary=summarize(seq))
         except StrepError as exc:
-            reply = ("error", type(exc).__name__, str(exc))
+            reply = ReadFailed(error_class=type(exc).__name__, message=str(exc))
         except MemoryError:
-            reply = ("error", "FormatError", "the file needs more memory to read than this service allows")
+            reply = ReadFailed(
+                error_class="FormatError", message="the file needs more memory to read than this service allows"
+            )
         except Exception as exc:  # a reader bug: report it as unreadable, keep serving
             traceback.print_exc()
-            reply = ("error", "FormatError", f"the file could not be read ({type(exc).__name__}: {exc})")
+            reply = ReadFailed(
+                error_class="FormatError", message=f"the file could not be read ({type(exc).__name__}: {exc})"
+            )
         try:
             conn.send(reply)
         except (OSError, ValueError):

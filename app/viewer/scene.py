@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from strep_core import geometry as g
-from strep_core.pipeline import frame_colors
+from strep_core.result import frame_colors
 from strep_core.sequence import Sequence
 
 # --------------------------------------------------------------------------------------------

@@ -38,13 +38,12 @@ from strep_core import geometry as g
 from strep_core import metrics
 from strep_core import registration as reg
 from strep_core.config import ClassicalConfig, RunConfig
-from strep_core.errors import RegistrationError
 from strep_core.events import IterationEvent, pose_list
-from strep_core.methods.registry import MethodOutput, RunContext, register
+from strep_core.methods.base import MethodOutput, RunContext, method
 from strep_core.sequence import Sequence
 
 
-@register("identity", description="every frame at its initial guess (identity or odometry); a floor")
+@method("identity", description="every frame at its initial guess (identity or odometry); a floor")
 def identity_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: RunContext) -> MethodOutput:
     return MethodOutput(poses=init.copy())
 
@@ -95,7 +94,7 @@ class _Progress:
 # icp
 
 
-@register(
+@method(
     "icp",
     description="incremental point-to-plane ICP (Open3D), each frame to a local map of the previous ones",
 )
@@ -119,34 +118,7 @@ def icp_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: RunConte
 # multiway
 
 
-def loop_candidates(positions: np.ndarray, *, radius: float, min_gap: int, max_per_frame: int) -> list[tuple[int, int]]:
-    """Loop-closure candidates by proximity: pairs ``(i, j)``, ``j - i >= min_gap``.
-
-    For each frame j, the ``max_per_frame`` nearest earlier frames within ``radius`` (at least
-    ``min_gap`` frames earlier), nearest first. Cost O(K log K) with a KD-tree, not O(K^2).
-
-    Args:
-        positions: ``(K, D)`` current frame positions (sequence unit).
-        radius: search radius (sequence unit).
-        min_gap: smallest index difference of a candidate pair.
-        max_per_frame: cap per frame j.
-    """
-    from scipy.spatial import cKDTree
-
-    if max_per_frame <= 0 or len(positions) <= min_gap:
-        return []
-    tree = cKDTree(positions)
-    pairs: list[tuple[int, int]] = []
-    for j, near in enumerate(tree.query_ball_point(positions, r=radius)):
-        earlier = [i for i in near if i <= j - min_gap]
-        if not earlier:
-            continue
-        dist = np.linalg.norm(positions[earlier] - positions[j], axis=1)
-        pairs.extend((earlier[n], j) for n in np.argsort(dist, kind="stable")[:max_per_frame])
-    return pairs
-
-
-@register(
+@method(
     "multiway",
     description="Open3D pose graph: ICP odometry edges + proximity loop closures, Levenberg-Marquardt",
     total_iterations=lambda seq, cfg: 2 * len(seq),
@@ -176,20 +148,9 @@ def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
 
     use_global = seq.dim == 2 and params.global_match is not None and cfg.loop_global != "off"
     robust_odometry = cfg.odometry_uncertain == "on" or (cfg.odometry_uncertain == "auto" and use_global)
+    on_frame = lambda j: progress.step(k_frames + j, odo.poses, k_frames)  # noqa: E731
     t0 = time.perf_counter()
-    with reg.open3d_quiet(params.threads) as o3d:
-        pgo = o3d.pipelines.registration
-        poses3 = g.to_se3(odo.poses)
-        graph = pgo.PoseGraph()
-        for pose in poses3:
-            graph.nodes.append(pgo.PoseGraphNode(pose))
-        for k in range(1, k_frames):
-            rel = g.relative(poses3[k - 1], poses3[k])
-            info = reg.information_matrix(clouds[k], clouds[k - 1], rel, fine)
-            graph.edges.append(pgo.PoseGraphEdge(k, k - 1, rel, info, uncertain=robust_odometry))
-
-        loops: list[reg.LoopClosure] = []
-        tried = 0
+    with reg.open3d_quiet(params.threads):
         if use_global:
             # the global matcher proposes and verifies: a drifted chain still closes its loops
             loops, tried = reg.global_loop_closures(
@@ -204,56 +165,36 @@ def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
                 every=cfg.loop_global_every,
                 scales=loop_scales,
                 max_turn=float(np.radians(cfg.loop_global_turn)),
-                on_frame=lambda j: progress.step(k_frames + j, odo.poses, k_frames),
+                on_frame=on_frame,
             )
-            for loop in loops:
-                info = reg.information_matrix(clouds[loop.j], clouds[loop.i], loop.transformation, fine)
-                graph.edges.append(pgo.PoseGraphEdge(loop.j, loop.i, loop.transformation, info, uncertain=True))
-        candidates = (
-            []
-            if use_global
-            else loop_candidates(
-                g.translation(odo.poses),
-                radius=radius,
-                min_gap=cfg.loop_min_gap,
-                max_per_frame=cfg.loop_max_candidates,
+        else:
+            candidates = reg.loop_candidates(
+                g.translation(odo.poses), radius=radius, min_gap=cfg.loop_min_gap, max_per_frame=cfg.loop_max_candidates
             )
-        )
-        kept = len(loops) if use_global else 0
-        by_frame: dict[int, list[int]] = {}
-        for i, j in candidates:
-            by_frame.setdefault(j, []).append(i)
-        for j in range(k_frames):
-            for i in by_frame.get(j, []):
-                res = reg.register_with(
-                    clouds[j], clouds[i], g.relative(poses3[i], poses3[j]), params, scales=loop_scales, yaw_search=False
-                )
-                if res.fitness < cfg.loop_min_fitness:
-                    continue
-                info = reg.information_matrix(clouds[j], clouds[i], res.transformation, fine)
-                graph.edges.append(pgo.PoseGraphEdge(j, i, res.transformation, info, uncertain=True))
-                kept += 1
-            if j > 0 and not use_global:
-                progress.step(k_frames + j, odo.poses, k_frames)
+            tried = len(candidates)
+            loops = reg.proximity_loop_closures(
+                clouds,
+                odo.poses,
+                candidates,
+                params,
+                scales=loop_scales,
+                min_fitness=cfg.loop_min_fitness,
+                on_frame=on_frame,
+            )
         t_loops = time.perf_counter() - t0
 
         ctx.check_cancel()
         t1 = time.perf_counter()
-        pgo.global_optimization(
-            graph,
-            pgo.GlobalOptimizationLevenbergMarquardt(),
-            pgo.GlobalOptimizationConvergenceCriteria(),
-            pgo.GlobalOptimizationOption(
-                max_correspondence_distance=fine,
-                edge_prune_threshold=cfg.edge_prune_threshold,
-                preference_loop_closure=cfg.loop_preference,
-                reference_node=0,
-            ),
+        optimised, edges = reg.optimise_pose_graph(
+            clouds,
+            odo.poses,
+            loops,
+            distance=fine,
+            odometry_uncertain=robust_odometry,
+            edge_prune_threshold=cfg.edge_prune_threshold,
+            loop_preference=cfg.loop_preference,
         )
-        optimised = np.stack([np.asarray(node.pose) for node in graph.nodes])
         t_opt = time.perf_counter() - t1
-    if not np.isfinite(optimised).all():
-        raise RegistrationError("the pose graph optimisation returned non-finite poses")
     poses = reg.from_se3(optimised, seq.dim)  # node 0 (the reference) stays at init[0]
     frames, counts = reg.pair_report(odo.pairs)
     progress.step(2 * k_frames, poses, k_frames)
@@ -263,10 +204,10 @@ def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
         history=progress.history,
         timings={"registration": odo.seconds, "loop_closure": t_loops, "optimization": t_opt},
         artifacts={
-            "loop_candidates": tried if use_global else len(candidates),
+            "loop_candidates": tried,
             "loop_source": "global scan matcher" if use_global else "proximity",
-            "loop_edges": kept,
-            "graph_edges": len(graph.edges),
+            "loop_edges": len(loops),
+            "graph_edges": edges,
             **frames,
         },
         metrics=counts,
@@ -300,7 +241,7 @@ def kiss_settings(seq: Sequence, cfg: ClassicalConfig) -> dict[str, float]:
     }
 
 
-@register("kiss", description="KISS-ICP 1.3 odometry (point-to-point to a voxel map, adaptive threshold)")
+@method("kiss", description="KISS-ICP 1.3 odometry (point-to-point to a voxel map, adaptive threshold)")
 def kiss_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: RunContext) -> MethodOutput:
     """KISS-ICP on the frames (2D as ``z = 0`` points), deskewing off.
 

@@ -1,8 +1,9 @@
 """The learned methods: `strep`, its no-link ablation and the DeepMapping baseline.
 
-All three run the same optimiser (`strep_core.optimize.optimize`); only the latent part of
-the pose decoder differs (see `strep_core.model`). ``init_poses`` is the warm start chosen by
-the registry (an ICP run by default); the networks predict a correction on top of it.
+All three run the same optimiser (`strep_core.optimize.optimize`); only the latent part of the
+pose decoder differs (`strep_core.model`). ``init_poses`` is the warm start the runner chose
+(the pose graph by default, identity from scratch); the networks predict a correction on top of
+it. Decisions and their measurements: docs/design/warm-start.md, docs/design/from-scratch.md.
 """
 
 from __future__ import annotations
@@ -12,12 +13,11 @@ import os
 import numpy as np
 
 from strep_core.config import RunConfig
-from strep_core.methods.registry import MethodOutput, RunContext, register
+from strep_core.methods.base import MethodOutput, RunContext, method
 from strep_core.sequence import Sequence
 
-# torch's OpenMP threads spin while they wait for work. On a shared CPU (other jobs running)
-# that made an iteration 5x slower: 3.0 s vs 0.63 s on v1_pose0 with 2 threads at load 4.
-# Passive waiting has to be chosen before torch loads (torch is imported lazily below); a
+# torch's OpenMP threads wait passively: spinning made an iteration 5x slower on a shared CPU
+# (docs/design/warm-start.md, threads). Chosen before torch loads (imported lazily below); a
 # value set by the user wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
@@ -26,7 +26,7 @@ def _iterations(seq: Sequence, cfg: RunConfig) -> int:
     return cfg.optim.iterations
 
 
-@register(
+@method(
     "strep",
     description="STREP (Wang et al.): temporally linked latents + PointNet pose decoder, Chamfer + occupancy",
     learned=True,
@@ -38,7 +38,7 @@ def strep(seq: Sequence, init_poses: np.ndarray, config: RunConfig, ctx: RunCont
     return optimize(seq, init_poses, config, ctx, variant="strep")
 
 
-@register(
+@method(
     "strep-nolink",
     description="STREP ablation: per-frame latents without the temporal link w",
     learned=True,
@@ -50,7 +50,7 @@ def strep_nolink(seq: Sequence, init_poses: np.ndarray, config: RunConfig, ctx: 
     return optimize(seq, init_poses, config, ctx, variant="strep-nolink")
 
 
-@register(
+@method(
     "deepmapping",
     description="DeepMapping (Ding & Feng 2019): pose from the points alone, no latent",
     learned=True,
