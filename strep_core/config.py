@@ -17,6 +17,7 @@ from strep_core.errors import ConfigError
 
 InitName = Literal["auto", "identity", "odometry", "ground_truth", "icp", "multiway", "kiss", "fpfh"]
 StartName = Literal["auto", "scratch", "pose-graph"]
+DeviceName = Literal["cpu", "cuda", "auto"]
 # initial guesses that run a classical method first (a from-scratch start runs none)
 CLASSICAL_INITS = frozenset({"icp", "multiway", "kiss", "fpfh"})
 
@@ -455,7 +456,7 @@ class RunConfig(_Section):
 
     method: str = Field(default="strep", max_length=64, description="a name from `strep methods`")
     seed: int = Field(default=0, ge=0, le=2**31 - 1)
-    device: Literal["cpu", "cuda", "auto"] = "cpu"
+    device: DeviceName = "cpu"
     threads: int | None = Field(default=None, ge=1, le=256, description="torch CPU threads; None: all cores")
     init: InitName = Field(
         default="auto",

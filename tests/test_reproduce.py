@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 from PIL import Image
 
-from strep_core.cli import make_parser
-from strep_core.reproduce import PLANS, VERDICTS, build_runs, claim1, claim2, estimate, reproduce
+from strep_bench.reproduce import PLANS, VERDICTS, build_runs, claim1, claim2, estimate, reproduce
+from strep_cli import make_parser
 
 NUMBER = re.compile(r"-?\d+(?:\.\d+)?(?:e[+-]?\d+)?")
 
