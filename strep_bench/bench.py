@@ -16,8 +16,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from strep_bench.cases import ALL_METHODS, DEFAULT_DATA, SUITES, BenchCase, run_case
-from strep_bench.tables import format_table, summarize, write_docs
+from strep_bench.cases import ALL_METHODS, DEFAULT_DATA, SUITES, BenchCase, run_case, summarize
+from strep_bench.tables import format_table, write_docs
 
 
 def machine_info() -> dict[str, Any]:

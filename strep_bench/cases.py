@@ -1,18 +1,47 @@
-"""The benchmark's cases: the suites' sequences, each method's config on a case, and `run_case`.
+"""The benchmark's cases: the standard sequences, each method's config on them, and `run_case`.
 
-Every suite uses the defaults and the profile the probe picks (`strep_core.profiles`): no
-suite has constants of its own beyond its reader options. What each suite holds and why is
-in `docs/benchmarks.md` ("Suites"); `strep_bench.bench` runs them, `strep_bench.ray_runner`
-spreads them over Ray and `strep_bench.reproduce` reuses them for the paper's claims.
+Suites (``--suites``):
+
+* ``v1_pose0``: DeepMapping's public 2D sequence (real file in the shared data), pixels;
+* ``sim2d``: simulated 2D lidar like the paper's, 20 trajectories over 3 maps (seeded), pixels;
+* ``carmen``: real laser logs, intel, aces and belgioioso windows 0:100 and 300:400 (quick:
+  0:100), metres, from identity (the logs' odometry equals their corrected poses: the reader
+  drops it); the probe picks the ``laser-keyframes`` profile (`strep_core.profiles`);
+* ``sim3d``: simulated indoor depth like the paper's AVD setting, 16-frame trajectories, metres
+  (the probe picks the ``depth-turning`` profile);
+* ``sevenscenes``: real Kinect depth (Microsoft 7-Scenes, frames 0-99 in the shared data),
+  16-frame windows of every 4th frame (0:64:4, 16:80:4, 36:100:4) and of every frame (0:16,
+  40:56), depth subsampled every 8 px (about 4,300 points a frame), from identity;
+* ``bunny``: the 10 Stanford bunny range scans (views up to 180 degrees apart), voxel 2 mm
+  (6,000 to 7,000 points a scan), once from identity and once from ``init="fpfh"``
+  (`strep_core.globalreg`), every method alike; its rows are labelled ``bunny`` and
+  ``bunny+fpfh`` so that each initial guess gets its own mean.
+
+On both real 3D suites learned methods run at most 100 iterations (`REAL3D_ITERATIONS`).
+
+The real 3D suites (`POSE_ERROR_SUITES`) get a second table in mm and degrees with the
+pairwise relative-pose errors (`strep_core.metrics.pairwise_errors`), which need no alignment:
+their reference trajectories barely translate (7-Scenes windows: a few cm; the bunny scans:
+all but four share one position), so only the map fixes a rigid alignment (as `point_l2` does).
+
+``--quick`` shrinks every suite (fewer sequences, frames and iterations) to finish in minutes.
+
+`run_case` runs the methods on one case: `strep_bench.bench` (``strep bench``) loops over the
+cases, `strep_bench.ray_runner` spreads them over Ray, and `strep_bench.reproduce` reuses the
+cases and `case_config` for the paper's claims. Every suite uses the defaults and the profile
+the probe picks: no suite has constants of its own beyond its reader options.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from strep_core.config import RunConfig
 from strep_core.sequence import Sequence
@@ -207,3 +236,41 @@ def run_case(case: BenchCase, methods: list[str], quick: bool, threads: int | No
         row.update({"suite": case.suite, "case": case.name, "unit": seq.unit})
         rows.append(row)
     return rows
+
+
+def as_number(v: Any) -> float:
+    return float(v) if isinstance(v, (int, float)) and v is not None and math.isfinite(v) else math.nan
+
+
+def summarize(rows: list[dict[str, Any]], methods: list[str]) -> list[dict[str, Any]]:
+    """Mean ATE, point L2 and wall seconds per suite and method."""
+    out = []
+    for suite in dict.fromkeys(r["suite"] for r in rows):
+        for m in methods:
+            sel = [r for r in rows if r["suite"] == suite and r["method"] == m]
+            if not sel:
+                continue
+            out.append(
+                {
+                    "suite": suite,
+                    "method": m,
+                    "cases": len(sel),
+                    # None (JSON null), not NaN, when every case failed: bench.json stays valid JSON
+                    "mean_ate": _finite_mean([r.get("ate") for r in sel]),
+                    "mean_point_l2": _finite_mean([r.get("point_l2") for r in sel]),
+                    "mean_wall_seconds": _finite_mean([r.get("wall_seconds") for r in sel]),
+                    "failed": sum(1 for r in sel if r["status"] != "ok"),
+                }
+            )
+            if suite in POSE_ERROR_SUITES:
+                out[-1].update({f"mean_{key}": _finite_mean([r.get(key) for r in sel]) for key in POSE_KEYS})
+    return out
+
+
+def _finite_mean(values: list[Any]) -> float | None:
+    """Mean of the finite numbers among ``values``; ``None`` when there is none (valid JSON)."""
+    nums = [v for v in map(as_number, values) if math.isfinite(v)]
+    return float(np.mean(nums)) if nums else None
+
+
+POSE_KEYS = ("pair_rot_err_mean_deg", "pair_trans_err_mean")

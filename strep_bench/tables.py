@@ -1,52 +1,12 @@
-"""The benchmark's summary (means per suite and method) and its markdown tables."""
+"""The benchmark's markdown tables: every case, the means per suite, the real 3D pose errors."""
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from strep_bench.cases import POSE_ERROR_SUITES
-
-
-def _num(v: Any) -> float:
-    return float(v) if isinstance(v, (int, float)) and v is not None and math.isfinite(v) else math.nan
-
-
-def summarize(rows: list[dict[str, Any]], methods: list[str]) -> list[dict[str, Any]]:
-    """Mean ATE, point L2 and wall seconds per suite and method."""
-    out = []
-    for suite in dict.fromkeys(r["suite"] for r in rows):
-        for m in methods:
-            sel = [r for r in rows if r["suite"] == suite and r["method"] == m]
-            if not sel:
-                continue
-            out.append(
-                {
-                    "suite": suite,
-                    "method": m,
-                    "cases": len(sel),
-                    # None (JSON null), not NaN, when every case failed: bench.json stays valid JSON
-                    "mean_ate": _finite_mean([r.get("ate") for r in sel]),
-                    "mean_point_l2": _finite_mean([r.get("point_l2") for r in sel]),
-                    "mean_wall_seconds": _finite_mean([r.get("wall_seconds") for r in sel]),
-                    "failed": sum(1 for r in sel if r["status"] != "ok"),
-                }
-            )
-            if suite in POSE_ERROR_SUITES:
-                out[-1].update({f"mean_{key}": _finite_mean([r.get(key) for r in sel]) for key in POSE_KEYS})
-    return out
-
-
-def _finite_mean(values: list[Any]) -> float | None:
-    """Mean of the finite numbers among ``values``; ``None`` when there is none (valid JSON)."""
-    nums = [v for v in map(_num, values) if math.isfinite(v)]
-    return float(np.mean(nums)) if nums else None
-
-
-POSE_KEYS = ("pair_rot_err_mean_deg", "pair_trans_err_mean")
+from strep_bench.cases import as_number as _num
 
 
 def format_table(rows: list[dict[str, Any]], summary: list[dict[str, Any]], methods: list[str]) -> str:

@@ -24,8 +24,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from strep_bench.cases import SUITES
-from strep_bench.tables import format_table, summarize
+from strep_bench.cases import SUITES, summarize
+from strep_bench.tables import format_table
 from strep_cli import main
 from strep_core import geometry as g
 from strep_core import globalreg
