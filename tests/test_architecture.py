@@ -200,24 +200,21 @@ def _fresh(code: str) -> str:
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
 
 
-@pytest.mark.parametrize(
-    "modules",
-    [
-        "strep_core, strep_core.pipeline, strep_core.sim, strep_core.io, strep_core.samples",
-        "strep_bench.bench, strep_bench.cases, strep_bench.reproduce",
-    ],
-)
-def test_core_and_bench_import_no_web_viewer_or_cluster_code(modules: str) -> None:
+@pytest.mark.parametrize("package", ["strep_core", "strep_bench"])
+def test_core_and_bench_import_no_web_viewer_or_cluster_code(package: str) -> None:
+    """Every module of the package imported in a fresh interpreter, and the method table filled."""
+    modules = sorted(name for name in MODULES if name.split(".")[0] == package)
     code = (
-        "import sys\n"
-        f"import {modules}\n"
+        "import importlib, sys\n"
+        f"for name in {modules!r}:\n"
+        "    importlib.import_module(name)\n"
         "from strep_core.methods import available\n"
         "available()\n"
         f"bad = sorted(m for m in sys.modules if m.split('.')[0] in {FORBIDDEN!r})\n"
         "print(','.join(bad))\n"
     )
     out = _fresh(code)
-    assert out == "", f"{modules} pulled in: {out}"
+    assert out == "", f"{package} pulled in: {out}"
 
 
 def test_importing_the_package_and_the_command_line_is_light() -> None:
