@@ -16,7 +16,8 @@ from collections.abc import Sequence as Seq
 from pathlib import Path
 from typing import Any, get_args
 
-from strep_cli.progress import ProgressMode, ProgressSink
+from strep_cli.progress import ProgressMode
+from strep_cli.progress import ProgressSink as _ProgressSink
 from strep_core.config import DeviceName, InitName, ProfileName, StartName
 from strep_core.errors import StrepError
 
@@ -123,7 +124,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.rrd is not None:
         _check_output(args.rrd, "--rrd", folder=False)
     mode: ProgressMode = "off" if args.quiet else "bar" if (sys.stderr.isatty() or args.progress) else "lines"
-    sink = ProgressSink(mode, config.method)
+    sink = _ProgressSink(mode, config.method)
     try:
         if args.rrd is None:
             result = run_input(args.input, config, out_dir=out_dir, sink=sink)
