@@ -154,14 +154,20 @@ def test_full_plan_is_sized_and_the_cli_knows_the_command(shared_data: Path) -> 
     assert args.quick and args.out == "x" and str(args.docs) == "y.md"
 
 
-def test_without_matplotlib_the_figures_name_the_extra(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_without_matplotlib_the_figures_name_the_extra(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """matplotlib is the ``bench`` extra, not a core dependency: its absence is one line naming it."""
     import sys
 
     from strep_bench.extras import MissingExtra, pyplot
+    from strep_cli import main
     from strep_core.errors import StrepError
 
     monkeypatch.setitem(sys.modules, "matplotlib", None)  # `import matplotlib` raises ImportError
     with pytest.raises(MissingExtra, match=r"pip install 'strep-studio\[bench\]'") as info:
         pyplot()
     assert isinstance(info.value, StrepError) and "\n" not in str(info.value)
+    # before any run: the command names the extra at once, with exit code 2
+    assert main(["reproduce", "--quick", "--out", str(tmp_path), "--data", str(tmp_path / "absent")]) == 2
+    assert "strep-studio[bench]" in capsys.readouterr().err

@@ -13,6 +13,7 @@ from typing import Any
 
 from strep_bench.bench import machine_info
 from strep_bench.cases import DEFAULT_DATA
+from strep_bench.extras import pyplot
 from strep_bench.reproduce.claims import (
     FAIL_PX,
     SUCCESS_PX,
@@ -160,6 +161,7 @@ def reproduce(
     progress: bool = True,
 ) -> dict[str, Any]:
     """Run a plan (resuming from the cache) and write the report; returns the report's JSON."""
+    pyplot()  # the bench extra missing: say so now, not after the runs
     started = time.perf_counter()
     data = data or DEFAULT_DATA
     runs = build_runs(plan, data)
