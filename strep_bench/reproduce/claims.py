@@ -34,6 +34,7 @@ def compare(a: float, b: float) -> str:
 
 
 def count_verdict(won: int, total: int) -> str:
+    """``holds`` when every comparison is won, ``does not hold`` below half, else ``holds partly``."""
     if total == 0 or won * 2 < total:
         return "does not hold"
     return "holds" if won == total else "holds partly"
@@ -282,6 +283,7 @@ def claim3(rows: list[dict[str, Any]]) -> ClaimReport:
 
 
 def groups_ablation(rows: list[dict[str, Any]]) -> list[tuple[dict[str, Any], str]]:
+    """(row filter, label) of the groups claim 4 compares: the 3D groups, then 2D per setting."""
     out = [({"claim": "3d", "suite": s, "setting": st}, label) for s, st, label in groups_3d(rows)]
     for setting in SETTINGS:
         if ok_rows(rows, claim="2d", setting=setting, method="strep-nolink"):

@@ -35,6 +35,7 @@ SUITES_3D = ("sevenscenes", "sim3d")
 
 
 def fmt_seconds(s: float) -> str:
+    """Seconds, or minutes from two minutes on."""
     return f"{s:.0f} s" if s < 120 else f"{s / 60:.1f} min"
 
 

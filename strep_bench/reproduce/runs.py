@@ -25,6 +25,7 @@ class ReproduceError(StrepError):
 
 
 def code_version() -> str | None:
+    """The repository's short commit (``+dirty`` when strep_core has changes); None without git."""
     root = Path(__file__).resolve().parents[2]  # the repository
     try:
         head = subprocess.run(
@@ -123,6 +124,7 @@ class RowCache:
 
 
 def json_default(v: Any) -> Any:
+    """JSON for numpy scalars (their value) and anything else (its text)."""
     if isinstance(v, (np.floating, np.integer)):
         return v.item()
     return str(v)

@@ -11,10 +11,12 @@ import numpy as np
 
 
 def ok_rows(rows: Iterable[dict[str, Any]], **where: Any) -> list[dict[str, Any]]:
+    """The finished rows whose fields equal ``where`` (failed runs are left out)."""
     return [r for r in rows if r.get("status") == "ok" and all(r.get(k) == v for k, v in where.items())]
 
 
 def metric_value(r: dict[str, Any], metric: str, display_mm: bool = False) -> float:
+    """A row's metric as a float, NaN when missing or not finite; metres shown in mm if asked."""
     v = r.get(metric)
     if not isinstance(v, (int, float)) or not math.isfinite(v):
         return math.nan
@@ -22,6 +24,7 @@ def metric_value(r: dict[str, Any], metric: str, display_mm: bool = False) -> fl
 
 
 def mean_std(values: list[float]) -> tuple[float, float, int]:
+    """Mean, sample std (0 for one value) and count of the finite values; NaN, NaN, 0 for none."""
     vals = [v for v in values if math.isfinite(v)]
     if not vals:
         return math.nan, math.nan, 0
@@ -50,12 +53,14 @@ def per_case_mean(rows: list[dict[str, Any]], metric: str, mm: bool = False) -> 
 
 
 def fmt_g(v: float) -> str:
+    """A number for a table: 3 significant digits, ``-`` for NaN."""
     if not math.isfinite(v):
         return "-"
     return f"{v:.3g}" if abs(v) < 1e5 else f"{v:.3e}"
 
 
 def pm(stat: tuple[float, float, int]) -> str:
+    """``mean ± std`` of a `mean_std` result (the mean alone for one value, ``-`` for none)."""
     m, s, n = stat
     if n == 0:
         return "-"
@@ -63,6 +68,7 @@ def pm(stat: tuple[float, float, int]) -> str:
 
 
 def md_table(head: list[str], rows: list[list[str]]) -> str:
+    """A markdown table; every row has a cell per column."""
     assert all(len(r) == len(head) for r in rows), (head, [r for r in rows if len(r) != len(head)])
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
