@@ -238,6 +238,34 @@ async function follow(job) {
   }
 }
 
+// How each event kind changes a job's entry: the page's side of strep_core/runstate.py's
+// REDUCERS (same kinds, same rules), plus the job store's own "status" records. A kind not
+// listed here changes nothing (docs/design/extending.md).
+const REDUCERS = {
+  start(entry, ev) {
+    entry.started = true;
+    entry.total = ev.total_iterations;
+    entry.unit = ev.unit;
+  },
+  stage(entry, ev) {
+    entry.stage = ev.stage;
+  },
+  iteration(entry, ev) {
+    entry.iteration = ev.iteration; entry.total = ev.total; entry.elapsed = ev.elapsed;
+    if (ev.losses && ev.losses.total != null) entry.loss.push([ev.iteration, ev.losses.total]);
+    if (ev.ate != null) { entry.ate.push([ev.iteration, ev.ate]); entry.lastAte = ev.ate; }
+    if (ev.iteration === 0) entry.startAte = ev.ate;
+  },
+  result(entry, ev) {
+    entry.metrics = ev.metrics;
+  },
+  status(entry, ev) {
+    entry.status = ev.status;
+    if (ev.error) entry.error = ev.error;
+  },
+};
+const ignore = () => {};
+
 function handleMessage(entry, block) {
   let kind = "message", id = null;
   const data = [];
@@ -250,23 +278,7 @@ function handleMessage(entry, block) {
   if (!data.length) return;
   let ev;
   try { ev = JSON.parse(data.join("\n")); } catch { return; }
-  if (kind === "iteration") {
-    entry.iteration = ev.iteration; entry.total = ev.total; entry.elapsed = ev.elapsed;
-    if (ev.losses && ev.losses.total != null) entry.loss.push([ev.iteration, ev.losses.total]);
-    if (ev.ate != null) { entry.ate.push([ev.iteration, ev.ate]); entry.lastAte = ev.ate; }
-    if (ev.iteration === 0) entry.startAte = ev.ate;
-  } else if (kind === "stage") {
-    entry.stage = ev.stage;
-  } else if (kind === "start") {
-    entry.started = true;
-    entry.total = ev.total_iterations;
-    entry.unit = ev.unit;
-  } else if (kind === "result") {
-    entry.metrics = ev.metrics;
-  } else if (kind === "status") {
-    entry.status = ev.status;
-    if (ev.error) entry.error = ev.error;
-  }
+  (Object.hasOwn(REDUCERS, kind) ? REDUCERS[kind] : ignore)(entry, ev);
   scheduleRedraw();
 }
 

@@ -132,7 +132,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             import time
             import uuid
 
-            from app.recording import cli_sink  # the Rerun sink lives in app/, imported only when asked
+            from app.rrd import cli_sink  # the Rerun sink lives in app/, imported only when asked
             from strep_core.events import MultiSink, StageEvent
             from strep_core.methods import run
             from strep_core.pipeline import load_input, write_outputs

@@ -7,9 +7,10 @@ listens: they call ``sink.emit(event)``; the CLI, the job service and the viewer
 
 from __future__ import annotations
 
+import json
 import threading
-from collections.abc import Callable, Iterable
-from typing import Annotated, Literal, Protocol, runtime_checkable
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from typing import Annotated, Any, Literal, Protocol, get_args, runtime_checkable
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
@@ -86,8 +87,13 @@ class ResultEvent(_Event):
     wall_seconds: float
 
 
+# The one list of event kinds: a new kind is a class above, a member of this union and a
+# reducer in `strep_core.runstate.REDUCERS` (docs/design/extending.md).
 Event = Annotated[StartEvent | IterationEvent | StageEvent | ResultEvent, Field(discriminator="kind")]
 _ADAPTER: TypeAdapter[Event] = TypeAdapter(Event)
+
+#: The kinds of progress events (the job store also keeps ``status`` records, which are not).
+PROGRESS_KINDS: frozenset[str] = frozenset(t.model_fields["kind"].default for t in get_args(get_args(Event)[0]))
 
 
 def parse_event(data: str | bytes | dict[str, object]) -> Event:
@@ -95,6 +101,25 @@ def parse_event(data: str | bytes | dict[str, object]) -> Event:
     if isinstance(data, dict):
         return _ADAPTER.validate_python(data)
     return _ADAPTER.validate_json(data)
+
+
+def progress_events(items: Iterable[Any]) -> Iterator[Event]:
+    """Events from a stored log: `Event` objects, dicts, JSON text, or records with ``kind``
+    and ``data`` (the job store's ``StoredEvent``). Entries of other kinds (``status``...) are
+    skipped; a malformed progress event raises ``pydantic.ValidationError``."""
+    for item in items:
+        if isinstance(item, (str, bytes)):
+            item = json.loads(item)
+        elif hasattr(item, "data") and hasattr(item, "kind") and not isinstance(item, Mapping):
+            if item.kind not in PROGRESS_KINDS:
+                continue
+            item = json.loads(item.data)
+        if isinstance(item, Mapping):
+            if item.get("kind") not in PROGRESS_KINDS:
+                continue
+            yield parse_event(dict(item))
+        elif getattr(item, "kind", None) in PROGRESS_KINDS:
+            yield item
 
 
 def pose_list(pose_vectors: np.ndarray) -> list[list[float]]:

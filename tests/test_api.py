@@ -26,7 +26,7 @@ from app.core.config import InsecureSettings, Settings
 from app.main import create_app
 from app.server import serve
 from app.services import DataDirBusy, Service
-from app.services.events import Mailbox
+from app.services.broadcast import Mailbox
 from app.store import StoredEvent
 from strep_core.config import SCRATCH_PROFILE
 from strep_core.events import parse_event

@@ -22,7 +22,7 @@ from helpers import FINAL, wait_until
 
 from app.core.config import Settings
 from app.main import create_app
-from app.recording import read_recording
+from app.rrd import read_recording
 from app.viewer.scene import poses_to_matrices
 from strep_cli import main as strep_main
 from strep_core.events import parse_event

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.recording import ComparisonRecorder, RerunRecorder, cli_sink, read_recording, write_recording
+from app.rrd import ComparisonRecorder, RerunRecorder, cli_sink, read_recording, write_recording
 from app.viewer.scene import poses_to_matrices
 from strep_core.config import RunConfig
 from strep_core.events import ListSink, MultiSink, ResultEvent
@@ -170,6 +170,28 @@ def test_the_recorder_does_not_import_viser() -> None:
     import subprocess
     import sys
 
-    code = "import sys, app.recording, app.viewer.scene; print(sorted({'viser', 'torch'} & set(sys.modules)))"
+    code = "import sys, app.rrd, app.viewer.scene; print(sorted({'viser', 'torch'} & set(sys.modules)))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert out == "[]"
+
+
+def test_an_unknown_event_kind_is_skipped_not_taken_for_an_iteration(sim2d, tmp_path: Path) -> None:
+    """A kind without a reducer (a newer producer's) leaves the recording as it was."""
+
+    class Note:
+        kind = "note"
+        iteration = 5  # an iteration-like field must not put it on the timeline
+        ate = 123.0
+
+    events = ListSink()
+    run(sim2d, RunConfig(method="icp"), sink=events)
+    path = tmp_path / "note.rrd"
+    with RerunRecorder(path, recording_id="n", sequence=sim2d, label="icp", autoclose=False) as rec:
+        for i, ev in enumerate(events.events):
+            rec.emit(ev)
+            if i == 1:
+                rec.emit(Note())
+    assert rec.failed is None
+    r = read_recording(path).runs["icp"]
+    assert r.iterations == [10, 20, 30, 40, 50, 60, 64] and 5 not in r.scalars["ate"][0]
+    _assert_last_poses(r, events, unit_scale=1100.0)

@@ -11,13 +11,14 @@ import numpy as np
 import pytest
 
 from app.viewer import ViewerServer
-from app.viewer.scene import History, Snapshot, display_anchor, poses_to_matrices, rotations_to_wxyz, stage_line
-from app.viewer.server import CHART_INTERVAL, loss_exponent
+from app.viewer.chart import CHART_INTERVAL, loss_exponent
+from app.viewer.scene import display_anchor, poses_to_matrices, rotations_to_wxyz
 from strep_core import geometry as g
 from strep_core.config import RunConfig
 from strep_core.events import IterationEvent, ListSink, MultiSink, StageEvent, StartEvent, pose_list
 from strep_core.methods import run
 from strep_core.pipeline import load_input
+from strep_core.runstate import History, Snapshot, stage_line
 
 MAX_POINTS = 8_000
 
@@ -452,3 +453,22 @@ def test_a_map_spread_beyond_the_ground_truth_pushes_its_neighbour_away(viewer, 
     gt_width = xb.max() - xb.min()
     assert xa.max() - xa.min() > 2.0 * gt_width  # the spread map really is wider
     assert xa.max() < xb.min()  # ... and lies wholly left of its neighbour
+
+
+def test_an_unknown_event_kind_changes_nothing_shown(viewer, seq, icp_events) -> None:
+    """A kind without a reducer is counted, never drawn as an iteration."""
+
+    class Note:
+        kind = "note"
+        iteration = 5
+        ate = 123.0
+
+    sink = viewer.sink("noted", "icp", seq, select=True)
+    for ev in icp_events[:2]:
+        sink.emit(ev)
+    sink.emit(Note())
+    assert viewer.wait_idle(5)
+    job = viewer.jobs()["noted"]
+    assert job["events"] == 3 and job["history"] == 1 and job["iteration"] == icp_events[1].iteration
+    assert "123" not in viewer._jobs["noted"].nodes["/jobs/noted/label"].text
+    viewer.remove_job("noted")

@@ -16,16 +16,16 @@ from typing import IO, TYPE_CHECKING
 
 from app.core.config import Settings, is_loopback
 from app.core.guard import LocalOnly
-from app.services.events import Broadcaster
+from app.services.broadcast import Broadcaster
+from app.services.comparison_recordings import ComparisonRecordings
 from app.services.jobs import JobService
 from app.services.live import LiveFeed
 from app.services.loader import SequenceLoader
-from app.services.recordings import ComparisonRecordings
 from app.services.sequences import SequenceService
 from app.store import Store
 
 if TYPE_CHECKING:
-    from app.viewer.server import ViewerServer
+    from app.viewer.viewer import ViewerServer
 
 log = logging.getLogger("strep.service")
 
@@ -74,7 +74,7 @@ class Service:
         self.live: LiveFeed | None = None
 
     def start(self) -> None:
-        from app.recording import disable_rerun_telemetry
+        from app.rrd import disable_rerun_telemetry
 
         disable_rerun_telemetry()  # here and in the workers (they inherit the environment)
         self.sequences.clean()

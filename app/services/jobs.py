@@ -32,7 +32,7 @@ from typing import Any
 from pydantic import ValidationError
 
 from app.core.config import Settings
-from app.services.events import Broadcaster
+from app.services.broadcast import Broadcaster
 from app.services.executors import WorkerHandle, make_executor
 from app.services.sequences import SequenceService, new_id
 from app.store import EventIn, StatusChange, Store, StoredEvent, now_iso

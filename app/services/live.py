@@ -35,8 +35,7 @@ from typing import Any
 
 from app.services.loader import SequenceLoader
 from app.store import FINAL_STATUSES, Store, StoredEvent
-from app.viewer.scene import PROGRESS_KINDS, progress_events
-from strep_core.events import Event
+from strep_core.events import PROGRESS_KINDS, Event, progress_events
 from strep_core.sequence import Sequence
 
 log = logging.getLogger("strep.service")

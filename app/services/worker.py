@@ -147,7 +147,7 @@ def open_recorder(path: Path, job_id: str, seq: Any, config: Any) -> Any:
     run registers (``config.frames`` applied, as `strep_core.methods.run` does).
     """
     try:
-        from app.recording import RerunRecorder, disable_rerun_telemetry
+        from app.rrd import RerunRecorder, disable_rerun_telemetry
 
         disable_rerun_telemetry()
         frames = seq.select(config.frames) if config.frames else seq

@@ -9,14 +9,14 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from app.viewer.server import JobSink, ViewerServer, ViewerStats
+    from app.viewer.viewer import JobSink, ViewerServer, ViewerStats
 
 __all__ = ["JobSink", "ViewerServer", "ViewerStats"]
 
 
 def __getattr__(name: str) -> Any:
     if name in __all__:
-        from app.viewer import server
+        from app.viewer import viewer
 
-        return getattr(server, name)
+        return getattr(viewer, name)
     raise AttributeError(f"module 'app.viewer' has no attribute {name!r}")

@@ -1,14 +1,14 @@
 """What the viewers show, computed with numpy only (no viser, no rerun).
 
-Both sinks (the Rerun recording, `app.recording`, and the viser viewer, `app.viewer.server`)
-draw the same things from the same events; this module holds the shared part:
+Both views (the Rerun recorder, `app.rrd`, and the viser viewer, `app.viewer`) draw the
+same things from the same run states (`strep_core.runstate`); this module holds the shared
+drawing part:
 
 * `SequenceScene`: a sequence prepared for drawing: each frame's local points padded to 3D
   (z = 0 in 2D), evenly strided to a point budget, float32; one colour per frame; the
   ground-truth poses as ``(K, 4, 4)``; the *display anchor* that places an estimate in the
   ground-truth world frame.
 * pose conversions: pose vectors ``(K, 3|6)`` -> ``(K, 4, 4)`` -> positions and ``wxyz``.
-* `History`: a job's past states at the event interval, bounded in memory.
 * `layout_panels`: x offsets that put several runs side by side without overlap.
 
 Display frame. A method's poses live in its own world frame (frame 0 at its initial guess,
@@ -20,16 +20,13 @@ stand upright). Without ground truth, ``A`` is the identity.
 
 from __future__ import annotations
 
-import json
 import math
-from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from strep_core import geometry as g
-from strep_core.events import Event, parse_event, stage_label
 from strep_core.pipeline import frame_colors
 from strep_core.sequence import Sequence
 
@@ -226,133 +223,10 @@ def label_position(box: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------
-# History
-
-
-@dataclass
-class Snapshot:
-    """A job's state after one event.
-
-    Attributes:
-        iteration: iterations done (the event's ``iteration``; the result's count at the end).
-        elapsed: seconds since the run started.
-        poses: ``(K, 3|6)`` float32 pose vectors, or ``None`` before the first poses.
-        losses: loss terms of the event.
-        ate: ATE in the sequence unit, when known.
-    """
-
-    iteration: int
-    elapsed: float
-    poses: np.ndarray | None
-    losses: dict[str, float]
-    ate: float | None
-
-
-class History:
-    """Snapshots at the event interval, at most ``limit`` of them.
-
-    When full, every other snapshot is dropped (the first and the newest are kept), so the
-    history always spans the whole run at an even, coarser step: memory stays bounded by
-    ``limit * K * 6 * 4`` bytes for the poses (poses unchanged since the previous snapshot
-    are shared, not copied).
-    """
-
-    def __init__(self, limit: int = 256) -> None:
-        if limit < 4:
-            raise ValueError("a history keeps at least 4 snapshots")
-        self.limit = limit
-        self.items: list[Snapshot] = []
-        self.dropped = 0
-
-    def __len__(self) -> int:
-        return len(self.items)
-
-    def append(self, snap: Snapshot) -> None:
-        if self.items and self.items[-1].iteration == snap.iteration:
-            self.items[-1] = snap  # the same iteration again (e.g. the result): latest wins
-            return
-        self.items.append(snap)
-        if len(self.items) > self.limit:
-            keep = [*self.items[:-1:2], self.items[-1]]
-            self.dropped += len(self.items) - len(keep)
-            self.items = keep
-
-    @property
-    def latest(self) -> Snapshot | None:
-        return self.items[-1] if self.items else None
-
-    def at(self, iteration: int) -> Snapshot | None:
-        """The newest snapshot with ``iteration <=`` the given one (the first if none is)."""
-        if not self.items:
-            return None
-        its = [s.iteration for s in self.items]
-        i = int(np.searchsorted(its, iteration, side="right")) - 1
-        return self.items[max(i, 0)]
-
-    def iterations(self) -> list[int]:
-        return [s.iteration for s in self.items]
-
-    def curves(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        """Per curve name (``loss/<term>``, ``ate``): ``(iterations, values)`` float64 arrays."""
-        out: dict[str, tuple[list[float], list[float]]] = {}
-        for s in self.items:
-            for term, v in s.losses.items():
-                xs, ys = out.setdefault(f"loss/{term}", ([], []))
-                xs.append(s.iteration)
-                ys.append(v)
-            if s.ate is not None:
-                xs, ys = out.setdefault("ate", ([], []))
-                xs.append(s.iteration)
-                ys.append(s.ate)
-        # a loss term that is off (weight 0: the optimiser reports it as 0.0) is no curve
-        return {
-            k: (np.asarray(x, np.float64), np.asarray(y, np.float64))
-            for k, (x, y) in out.items()
-            if k == "ate" or any(v != 0.0 for v in y)
-        }
-
-
-def stage_line(
-    stage: str | None, snap: Snapshot | None, *, start_ate: float | None, unit: str, finished: bool
-) -> str | None:
-    """The line that says where a run is: ``"stage: warm start (multiway)"`` before its first
-    iteration event, ``"stage: warm start (multiway) done, ATE 0.069 px"`` at iteration 0,
-    ``"stage: optimising (from ATE 0.069 px)"`` after; None once finished or before anything."""
-    if finished:
-        return None
-    it = None if snap is None else snap.iteration
-    start = f"ATE {start_ate:.4g} {unit}" if start_ate is not None else ""
-    if it == 0:  # (also when replaying iteration 0)
-        head = f"{stage_label(stage)} done" if stage and stage.startswith("init") else "starting"
-        return f"stage: {head}" + (f", {start}" if start else "")
-    if stage == "optimise" or (it is not None and it > 0 and stage != "write"):
-        return "stage: optimising" + (f" (from {start})" if start else "")
-    return None if stage is None else f"stage: {stage_label(stage)}"
+# Names
 
 
 def safe_name(text: str) -> str:
     """``text`` reduced to ``[A-Za-z0-9_-]`` (other characters become ``_``), never empty."""
     out = "".join(c if c.isascii() and (c.isalnum() or c in "-_") else "_" for c in str(text))
     return out or "_"
-
-
-PROGRESS_KINDS = frozenset({"start", "stage", "iteration", "result"})
-
-
-def progress_events(items: Iterable[Any]) -> Iterator[Event]:
-    """Events from a stored log: `Event` objects, dicts, JSON text, or records with ``kind``
-    and ``data`` (the job store's ``StoredEvent``). Entries of other kinds (``status``...) are
-    skipped; a malformed progress event raises ``pydantic.ValidationError``."""
-    for item in items:
-        if isinstance(item, (str, bytes)):
-            item = json.loads(item)
-        elif hasattr(item, "data") and hasattr(item, "kind") and not isinstance(item, Mapping):
-            if item.kind not in PROGRESS_KINDS:
-                continue
-            item = json.loads(item.data)
-        if isinstance(item, Mapping):
-            if item.get("kind") not in PROGRESS_KINDS:
-                continue
-            yield parse_event(dict(item))
-        elif getattr(item, "kind", None) in PROGRESS_KINDS:
-            yield item

@@ -5,7 +5,7 @@ by the service when the comparison's last job has finished: `ComparisonRecording
 to the event stream (`Broadcaster.listen`), and on a job's final status checks, on its own
 thread, whether the job's comparison is complete; if so it reads the sequence and the jobs'
 stored events and writes ``results/<comparison id>/recording.rrd`` with
-`app.recording.write_recording` (to a temporary name, renamed into place). Nothing of this
+`app.rrd.write_recording` (to a temporary name, renamed into place). Nothing of this
 runs on the supervisor thread or on the event loop.
 
 A comparison whose recording is missing (it finished before this existed, or the service
@@ -24,7 +24,7 @@ from typing import Literal
 from app.core.config import Settings
 from app.services.loader import SequenceLoader
 from app.store import ACTIVE_STATUSES, Store, StoredEvent
-from app.viewer.scene import PROGRESS_KINDS
+from strep_core.events import PROGRESS_KINDS
 
 log = logging.getLogger("strep.service")
 
@@ -125,7 +125,7 @@ class ComparisonRecordings:
 
     def write(self, comparison_id: str) -> Path:
         """Write the comparison's recording now (blocking) and return its path."""
-        from app.recording import write_recording
+        from app.rrd import write_recording
 
         comparison = self.store.get_comparison(comparison_id)
         if comparison is None:

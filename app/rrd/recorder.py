@@ -1,47 +1,17 @@
-"""Rerun recordings of registration runs: a sink that writes one ``.rrd`` per job or comparison.
+"""The Rerun sink: `RerunRecorder` writes the runs it is fed into one ``.rrd`` file.
 
-A `RerunRecorder` is a sink (``emit(event)``) of `strep_core.events`. It owns its own
-``rerun.RecordingStream`` (never the global one), with an explicit recording id, streaming to
-a temporary file beside ``path`` that is renamed into place by `close` (or by the last
-`ResultEvent`), so a reader never sees a half-written recording.
-
-Entity paths (``<run>`` is the run's label reduced to ``[A-Za-z0-9_-]``, by default the method):
-
-====================================== ========= ==========================================
-path                                   when      what
-====================================== ========= ==========================================
-``world``                              static    view coordinates (z up)
-``world/<run>``                        static    Transform3D: the panel's x offset
-``world/<run>/label``                  static    Points3D: one point labelled with the run
-``world/<run>/frames``                 iteration Transform3D: display anchor ``G_0 inv(T_0)``
-``world/<run>/frames/frame_<k>``       static    Points3D: frame k's local points, its colour
-``world/<run>/frames/frame_<k>``       iteration Transform3D: the estimated pose ``T_k``
-``world/<run>/trajectory``             iteration LineStrips3D: estimated positions
-``world/<run>/map``                    iteration Points3D: fused map every ``map_every``
-``world/<run>/ground_truth/trajectory`` static   LineStrips3D, when ground truth is known
-``world/<run>/ground_truth/map``       static    Points3D (grey), when ground truth is known
-``metrics/<run>/loss/<term>``          iteration Scalars (``total`` included)
-``metrics/<run>/ate``                  iteration Scalars, when ground truth is known
-``summary/<run>``                      static    TextDocument: the final metrics
-``logs/<run>``                         iteration TextLog: stages, start, result
-====================================== ========= ==========================================
-
-Timelines: ``iteration`` (sequence: the event's iteration, the result's count at the end)
-and ``elapsed`` (duration: seconds since the run started). Frames move through their
-transforms, so each frame's points are logged once. The default blueprint opens a 3D view
-of ``world`` (the fused-map snapshots hidden, the live frames shown) beside time-series
-views of the losses and the ATE and the summary text.
-
-Telemetry: writing a recording sends nothing anywhere; analytics live in the Rerun *viewer*.
-`disable_rerun_telemetry` switches off what can be switched off before a viewer is started.
+It owns its own ``rerun.RecordingStream`` (never the global one), with an explicit recording
+id, streaming to a temporary file beside ``path`` that is renamed into place by `close` (or
+by the last `ResultEvent`), so a reader never sees a half-written recording. Each run's
+events go through `strep_core.runstate.apply`; the recorder draws the `Step` each one
+makes (entity paths: `app.rrd`), so it reads no event itself and skips kinds it has no
+reducer for. Frames move through their transforms, so each frame's points are logged once.
 """
 
 from __future__ import annotations
 
 import logging
 import os
-import subprocess
-import sys
 import threading
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -50,14 +20,10 @@ from types import TracebackType
 from typing import Any
 
 import numpy as np
-
-# OpenTelemetry tracing of the Rerun SDK stays off unless someone explicitly asked for it
-# (rerun reads this when imported). Analytics: see `disable_rerun_telemetry`.
-os.environ.setdefault("TELEMETRY_ENABLED", "false")
-
 import rerun as rr
 import rerun.blueprint as rrb
 
+from app.rrd.blueprint import APPLICATION_ID, ELAPSED, GT_COLOR, ITERATION, TRAJECTORY_COLORS, default_blueprint
 from app.viewer.scene import (
     SequenceScene,
     bbox,
@@ -65,43 +31,14 @@ from app.viewer.scene import (
     label_position,
     layout_panels,
     poses_to_matrices,
-    progress_events,
     safe_name,
     union_bbox,
 )
-from strep_core.events import Event, ResultEvent, StageEvent, StartEvent
+from strep_core.events import Event, progress_events
+from strep_core.runstate import History, RunState, apply
 from strep_core.sequence import Sequence
 
 log = logging.getLogger(__name__)
-
-APPLICATION_ID = "strep-studio"
-ITERATION = "iteration"
-ELAPSED = "elapsed"
-GT_COLOR = (150, 150, 150)
-TRAJECTORY_COLORS = [(230, 80, 40), (40, 120, 230), (40, 170, 90), (170, 70, 200), (220, 170, 30)]
-
-
-def disable_rerun_telemetry(*, write_viewer_config: bool = False) -> None:
-    """Switch off Rerun's telemetry for this process and the viewers it starts.
-
-    * ``TELEMETRY_ENABLED=false``: the SDK's OpenTelemetry tracing (set at import of this
-      module too, unless already set).
-    * ``write_viewer_config=True`` runs the documented opt-out ``rerun analytics disable``
-      (the bundled CLI), which writes ``analytics_enabled: false`` into the user's
-      ``~/.config/rerun/analytics.json``: native viewers and the web-viewer server started
-      from this machine then send no usage data. Rerun 0.41 has no environment variable for
-      this (its README's ``RERUN_ANALYTICS=0`` is not read by the 0.41 binary; only
-      ``FORCE_RERUN_ANALYTICS`` and ``CI`` are). The wasm viewer in a browser reports from the
-      browser; a page that embeds it should restrict ``connect-src`` in its CSP.
-    """
-    os.environ["TELEMETRY_ENABLED"] = "false"
-    if write_viewer_config:
-        subprocess.run(
-            [sys.executable, "-m", "rerun", "analytics", "disable"],
-            check=True,
-            capture_output=True,
-            timeout=60,
-        )
 
 
 # --------------------------------------------------------------------------------------------
@@ -115,15 +52,13 @@ class _Run:
     label: str
     key: str
     index: int
-    method: str | None = None
-    started: bool = False
-    finished: bool = False
-    events: int = 0
-    last_iteration: int = -1
+    # what the run is (float64 poses: the figures are written out; no replay, a short history)
+    state: RunState = field(default_factory=lambda: RunState(history=History(4)))
+    # what has been drawn
+    drawn_iteration: int = -1
+    drawn_poses: np.ndarray | None = None  # (K, 3|6) pose vectors as logged
     last_map_iteration: int | None = None
-    last_poses: np.ndarray | None = None  # (K, 3|6) pose vectors as logged
     bbox: tuple[np.ndarray, np.ndarray] | None = None
-    iterations: list[int] = field(default_factory=list)
 
 
 class RerunRecorder:
@@ -177,7 +112,8 @@ class RerunRecorder:
         self._lock = threading.RLock()
         self._runs: dict[str, _Run] = {}
         self._default_label = label
-        self._pending: list[Event] = []  # events of the `emit` run before its StartEvent names it
+        self._pending: list[Event] = []  # events of the `emit` run before its start event names it
+        self._naming = RunState(history=History(4))  # those events, reduced until the method is known
         self._expected = list(labels) if labels is not None else None
         self._blueprint_keys: tuple[str, ...] = ()
 
@@ -203,13 +139,14 @@ class RerunRecorder:
         """Record an event of the single run (see ``label``)."""
         with self._lock:
             if self._default_label is None:
-                if not isinstance(event, StartEvent):
-                    self._pending.append(event)
+                self._pending.append(event)
+                if apply(self._naming, event).method is None:
                     return
-                self._default_label = event.method
+                self._default_label = self._naming.method
                 pending, self._pending = self._pending, []
                 for ev in pending:
                     self._emit(self._default_label, ev)
+                return
             self._emit(self._default_label, event)
 
     def sink(self, label: str) -> _RunSink:
@@ -228,12 +165,12 @@ class RerunRecorder:
                 self.failed = f"{type(exc).__name__}: {exc}"
                 log.exception("rerun recording %s failed; no more events are recorded", self.path)
                 return
-            if self.autoclose and isinstance(event, ResultEvent) and self._all_finished():
+            if self.autoclose and self._all_finished():
                 self.close()
 
     def _all_finished(self) -> bool:
         expected = self._expected if self._expected is not None else [self._default_label]
-        return all(lab in self._runs and self._runs[lab].finished for lab in expected)
+        return all(lab in self._runs and self._runs[lab].state.finished for lab in expected)
 
     # ---- lifecycle -------------------------------------------------------------------------
     def close(self, *, discard: bool = False) -> Path | None:
@@ -345,54 +282,37 @@ class RerunRecorder:
             )
 
     def _record(self, run: _Run, event: Event) -> None:
+        """Apply ``event`` to the run's state and draw the step it made."""
+        step = apply(run.state, event).step
+        if step is None:
+            return  # a kind without a reducer: nothing to draw
         rec = self.rec
-        run.events += 1
-        if isinstance(event, StartEvent):
-            run.method, run.started = event.method, True
-            rec.set_time(ITERATION, sequence=0)
-            rec.set_time(ELAPSED, duration=0.0)
-            rec.log(
-                f"logs/{run.key}",
-                rr.TextLog(
-                    f"{run.label}: {event.method} on {event.sequence} ({event.frames} frames, {event.dims}D, "
-                    f"{event.total_iterations} iterations planned, initial guess {event.initial_guess})"
-                ),
-            )
-            return
-        if isinstance(event, StageEvent):
-            rec.set_time(ITERATION, sequence=max(run.last_iteration, 0))
-            rec.set_time(ELAPSED, duration=event.elapsed)
-            rec.log(f"logs/{run.key}", rr.TextLog(f"{run.label}: stage {event.stage}"))
-            return
-        if isinstance(event, ResultEvent):
-            iteration = max(event.iterations, run.last_iteration, 0)
-            rec.set_time(ITERATION, sequence=iteration)
-            rec.set_time(ELAPSED, duration=event.wall_seconds)
-            poses = np.asarray(event.poses, dtype=np.float64)
-            if run.last_poses is None or iteration != run.last_iteration or not np.array_equal(poses, run.last_poses):
-                self._log_poses(run, iteration, poses, final=True)
-            elif run.last_map_iteration != iteration:
-                self._log_map(run, iteration, poses)
-            ate = event.metrics.get("ate")
-            if isinstance(ate, (int, float)):
-                rec.log(f"metrics/{run.key}/ate", rr.Scalars(float(ate)))
+        rec.set_time(ITERATION, sequence=step.iteration)
+        rec.set_time(ELAPSED, duration=step.elapsed)
+        snap = step.snapshot
+        if snap is not None and not step.final:
+            for term, value in snap.losses.items():
+                rec.log(f"metrics/{run.key}/loss/{safe_name(term)}", rr.Scalars(float(value)))
+            if snap.ate is not None:
+                rec.log(f"metrics/{run.key}/ate", rr.Scalars(float(snap.ate)))
+            if snap.poses is not None and snap.poses is not run.drawn_poses:
+                self._log_poses(run, snap.iteration, snap.poses, final=False)
+        elif snap is not None:  # the result: the final poses (or map), the final ATE, the summary
+            poses, it = snap.poses, step.iteration
+            assert poses is not None
+            if run.drawn_poses is None or it != run.drawn_iteration or not np.array_equal(poses, run.drawn_poses):
+                self._log_poses(run, it, poses, final=True)
+            elif run.last_map_iteration != it:
+                self._log_map(run, it, poses)
+            if snap.ate is not None:
+                rec.log(f"metrics/{run.key}/ate", rr.Scalars(float(snap.ate)))
             rec.log(
                 f"summary/{run.key}",
-                rr.TextDocument(_summary(run, event), media_type=rr.MediaType.MARKDOWN),
+                rr.TextDocument(_summary(run), media_type=rr.MediaType.MARKDOWN),
                 static=True,
             )
-            rec.log(f"logs/{run.key}", rr.TextLog(f"{run.label}: finished after {event.wall_seconds:.2f} s"))
-            run.finished = True
-            return
-        # IterationEvent
-        rec.set_time(ITERATION, sequence=event.iteration)
-        rec.set_time(ELAPSED, duration=event.elapsed)
-        for term, value in event.losses.items():
-            rec.log(f"metrics/{run.key}/loss/{safe_name(term)}", rr.Scalars(float(value)))
-        if event.ate is not None:
-            rec.log(f"metrics/{run.key}/ate", rr.Scalars(float(event.ate)))
-        if event.poses is not None:
-            self._log_poses(run, event.iteration, np.asarray(event.poses, dtype=np.float64), final=False)
+        if step.message is not None:
+            rec.log(f"logs/{run.key}", rr.TextLog(f"{run.label}: {step.message}"))
 
     def _log_poses(self, run: _Run, iteration: int, vectors: np.ndarray, *, final: bool) -> None:
         rec, root = self.rec, f"world/{run.key}"
@@ -403,9 +323,7 @@ class RerunRecorder:
             rec.log(f"{root}/frames/frame_{k}", rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]))
         shown = anchor[None] @ est
         rec.log(f"{root}/trajectory", rr.LineStrips3D.from_fields(strips=[shown[:, :3, 3]]))
-        run.last_poses, run.last_iteration = vectors, iteration
-        if not run.iterations or run.iterations[-1] != iteration:
-            run.iterations.append(iteration)
+        run.drawn_poses, run.drawn_iteration = vectors, iteration
         due = run.last_map_iteration is None or iteration - run.last_map_iteration >= self.map_every
         if final or due:
             self._log_map(run, iteration, vectors, shown=shown)
@@ -480,36 +398,13 @@ class ComparisonRecorder(RerunRecorder):
         raise TypeError("a ComparisonRecorder takes events through sink(label).emit(event)")
 
 
-def default_blueprint(keys: list[str]) -> rrb.Blueprint:
-    """3D view of ``world`` (map snapshots hidden) beside loss, ATE and summary views."""
-    return rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Spatial3DView(
-                name="Registration",
-                origin="world",
-                overrides={f"world/{k}/map": rrb.EntityBehavior(visible=False) for k in keys},
-            ),
-            rrb.Vertical(
-                rrb.TimeSeriesView(
-                    name="Loss", origin="metrics", contents=[f"+ metrics/{k}/loss/**" for k in keys] or "$origin/**"
-                ),
-                rrb.TimeSeriesView(name="ATE", origin="metrics", contents=[f"+ metrics/{k}/ate" for k in keys]),
-                rrb.TextDocumentView(name="Summary", origin="summary"),
-                row_shares=[2, 2, 1],
-            ),
-            column_shares=[3, 2],
-        ),
-        collapse_panels=True,
-    )
-
-
 def _unit_box() -> tuple[np.ndarray, np.ndarray]:
     return np.zeros(3), np.ones(3)
 
 
-def _summary(run: _Run, event: ResultEvent) -> str:
+def _summary(run: _Run) -> str:
     lines = [f"### {run.label}", "", "| metric | value |", "| --- | --- |"]
-    for name, value in event.metrics.items():
+    for name, value in run.state.metrics.items():
         text = f"{value:.6g}" if isinstance(value, float) else str(value)
         lines.append(f"| {name} | {text} |")
     return "\n".join(lines) + "\n"
@@ -562,140 +457,3 @@ def write_recording(
     if recorder.failed:
         raise RuntimeError(f"writing {path} failed: {recorder.failed}")
     return Path(path)
-
-
-# --------------------------------------------------------------------------------------------
-# Reading back
-
-
-@dataclass
-class RunRecording:
-    """One run as read back from a recording.
-
-    Attributes:
-        key: the run's entity key (``world/<key>``).
-        label: its label (from the label point), when present.
-        iterations: distinct ``iteration`` values at which poses were logged, ascending.
-        last_poses: ``(K, 4, 4)`` float64: each frame's transform at the last logged
-            iteration (the estimated local -> world poses, float32 precision).
-        scalars: ``loss/<term>`` and ``ate`` -> ``(iterations, values)``.
-        map_iterations: iterations at which a fused map was logged.
-        offset: ``(3,)`` the panel's offset in ``world`` (static, the latest layout).
-    """
-
-    key: str
-    label: str | None
-    iterations: list[int]
-    last_poses: np.ndarray
-    scalars: dict[str, tuple[np.ndarray, np.ndarray]]
-    map_iterations: list[int]
-    offset: np.ndarray
-
-
-@dataclass
-class RecordingSummary:
-    """What a ``.rrd`` written by a recorder holds."""
-
-    application_id: str
-    recording_id: str
-    entity_paths: list[str]
-    runs: dict[str, RunRecording]
-    has_blueprint: bool
-    views: list[str] = field(default_factory=list)
-
-
-def read_recording(path: str | Path) -> RecordingSummary:
-    """Read a recording back with Rerun's own reader (`rerun.chunk.RrdReader`)."""
-    from rerun.chunk import RrdReader
-
-    reader = RrdReader(path)
-    stores = reader.recordings()
-    if not stores:
-        raise ValueError(f"{path} holds no recording")
-    store = stores[0]
-    paths: set[str] = set()
-    # (key, k) -> (iteration, row id, translation, mat3x3)
-    last: dict[tuple[str, int], tuple[int, bytes, list[float], list[float]]] = {}
-    iterations: dict[str, set[int]] = {}
-    map_its: dict[str, set[int]] = {}
-    labels: dict[str, str] = {}
-    offsets: dict[str, tuple[bytes, list[float]]] = {}
-    scalars: dict[tuple[str, str], list[tuple[int, bytes, float]]] = {}
-    for chunk in reader.stream(store=store):
-        entity = chunk.entity_path.lstrip("/")
-        paths.add(entity)
-        parts = entity.split("/")
-        batch = chunk.to_record_batch()
-        names = batch.schema.names
-        if chunk.is_static:  # the latest static write wins, as in the viewer
-            rows = [bytes(r) for r in batch.column("rerun.controls.RowId").to_pylist()]
-            if len(parts) == 3 and parts[0] == "world" and parts[2] == "label" and "Points3D:labels" in names:
-                for row in batch.column("Points3D:labels").to_pylist():
-                    if row:
-                        labels[parts[1]] = row[0]
-            if len(parts) == 2 and parts[0] == "world" and "Transform3D:translation" in names:
-                for rid, t in zip(rows, batch.column("Transform3D:translation").to_pylist(), strict=True):
-                    if t and (parts[1] not in offsets or rid > offsets[parts[1]][0]):
-                        offsets[parts[1]] = (rid, t[0])
-            continue
-        if ITERATION not in names:
-            continue
-        its = batch.column(ITERATION).to_pylist()
-        rows = [bytes(r) for r in batch.column("rerun.controls.RowId").to_pylist()]
-        if len(parts) == 4 and parts[0] == "world" and parts[2] == "frames" and parts[3].startswith("frame_"):
-            key, k = parts[1], int(parts[3].removeprefix("frame_"))
-            trans = batch.column("Transform3D:translation").to_pylist()
-            mats = batch.column("Transform3D:mat3x3").to_pylist()
-            for it, rid, t, m in zip(its, rows, trans, mats, strict=True):
-                if it is None or not t or not m:
-                    continue
-                iterations.setdefault(key, set()).add(it)
-                cur = last.get((key, k))
-                if cur is None or (it, rid) > (cur[0], cur[1]):
-                    last[(key, k)] = (it, rid, t[0], m[0])
-        elif len(parts) == 3 and parts[0] == "world" and parts[2] == "map" and "Points3D:positions" in names:
-            map_its.setdefault(parts[1], set()).update(i for i in its if i is not None)
-        elif len(parts) >= 3 and parts[0] == "metrics" and "Scalars:scalars" in names:
-            name = "/".join(parts[2:])
-            values = batch.column("Scalars:scalars").to_pylist()
-            for it, rid, v in zip(its, rows, values, strict=True):
-                if it is not None and v:
-                    scalars.setdefault((parts[1], name), []).append((it, rid, float(v[0])))
-
-    runs: dict[str, RunRecording] = {}
-    for key in sorted(iterations):
-        ks = sorted(k for (kk, k) in last if kk == key)
-        poses = np.zeros((len(ks), 4, 4))
-        for i, k in enumerate(ks):
-            _, _, t, m = last[(key, k)]
-            poses[i, :3, :3] = np.asarray(m, dtype=np.float64).reshape(3, 3, order="F")
-            poses[i, :3, 3] = t
-            poses[i, 3, 3] = 1.0
-        curves = {}
-        for (kk, name), pts in scalars.items():
-            if kk == key:
-                pts.sort()
-                curves[name] = (np.array([p[0] for p in pts], np.float64), np.array([p[2] for p in pts], np.float64))
-        runs[key] = RunRecording(
-            key=key,
-            label=labels.get(key),
-            iterations=sorted(iterations[key]),
-            last_poses=poses,
-            scalars=curves,
-            map_iterations=sorted(map_its.get(key, set())),
-            offset=np.asarray(offsets[key][1] if key in offsets else np.zeros(3), dtype=np.float64),
-        )
-    views: list[str] = []
-    for bp in reader.blueprints()[-1:]:  # the latest blueprint sent
-        for chunk in reader.stream(store=bp):
-            batch = chunk.to_record_batch()
-            if "ViewBlueprint:display_name" in batch.schema.names:
-                views += [v[0] for v in batch.column("ViewBlueprint:display_name").to_pylist() if v]
-    return RecordingSummary(
-        application_id=store.application_id,
-        recording_id=store.recording_id,
-        entity_paths=sorted(paths),
-        runs=runs,
-        has_blueprint=bool(reader.blueprints()),
-        views=sorted(set(views)),
-    )
