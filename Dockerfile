@@ -32,6 +32,8 @@ RUN pip install --index-url "${TORCH_INDEX}" "torch==${TORCH_VERSION}"
 
 COPY --chown=strep:strep pyproject.toml README.md ./
 COPY --chown=strep:strep strep_core ./strep_core
+COPY --chown=strep:strep strep_bench ./strep_bench
+COPY --chown=strep:strep strep_cli ./strep_cli
 COPY --chown=strep:strep app ./app
 COPY --chown=strep:strep static ./static
 COPY --chown=strep:strep sample_sequences ./sample_sequences

@@ -21,7 +21,9 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from strep_core.bench import DEFAULT_DATA, SUITES, format_table, machine_info, run_case, summarize
+from strep_bench.bench import machine_info
+from strep_bench.cases import DEFAULT_DATA, SUITES, run_case, summarize
+from strep_bench.tables import format_table
 
 FAILED_PX = 100.0  # claims 1-2: a run fails above this ATE (px), as in docs/reproduction.md
 

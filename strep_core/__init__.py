@@ -1,6 +1,7 @@
 """STREP Studio's algorithm core: sequences, readers, geometry, metrics and registration methods.
 
-This package imports no web, viewer or cluster code (see docs/architecture in the README).
+It imports no web, viewer or cluster code and none of the packages built on it (`strep_bench`,
+`app`, `strep_cli`): docs/design/extending.md, "Layers".
 """
 
 from strep_core.config import RunConfig

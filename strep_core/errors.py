@@ -35,3 +35,12 @@ class RegistrationError(StrepError, RuntimeError):
 
 class Cancelled(StrepError):
     """A run was cancelled through its cancel flag."""
+
+
+def first_lines(text: str, limit: int = 300) -> str:
+    """One line of a long error text for a status or a table row: a Ray actor's "The actor is
+    dead because ..." line when present, else the first non-blank line, cut to ``limit`` chars."""
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    because = [line for line in lines if line.startswith("The actor is dead because")]
+    chosen = because[0] if because else (lines[0] if lines else "no details")
+    return chosen if len(chosen) <= limit else chosen[: limit - 3] + "..."

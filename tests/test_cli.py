@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from strep_core.cli import main
+from strep_cli import main
 from strep_core.io.poses import read_tum
 
 
@@ -64,7 +64,7 @@ def test_malformed_file_is_reported_without_traceback(tmp_path: Path) -> None:
     bad = tmp_path / "broken.npz"
     bad.write_bytes(b"PK\x03\x04 this is not a zip")
     proc = subprocess.run(
-        [sys.executable, "-m", "strep_core.cli", "run", str(bad), "--method", "identity", "--out", str(tmp_path)],
+        [sys.executable, "-m", "strep_cli", "run", str(bad), "--method", "identity", "--out", str(tmp_path)],
         capture_output=True,
         text=True,
         check=False,
@@ -106,7 +106,7 @@ def _cli(*argv: str, cwd: Path) -> subprocess.CompletedProcess[str]:
     root = Path(__file__).resolve().parents[1]
     env = {**os.environ, "PYTHONPATH": str(root)}
     return subprocess.run(
-        [sys.executable, "-m", "strep_core.cli", *argv], capture_output=True, text=True, check=False, cwd=cwd, env=env
+        [sys.executable, "-m", "strep_cli", *argv], capture_output=True, text=True, check=False, cwd=cwd, env=env
     )
 
 
@@ -226,7 +226,7 @@ def test_serve_takes_a_viewer_port(monkeypatch: pytest.MonkeyPatch) -> None:
 def test_readme_synopsis_matches_the_parser() -> None:
     """Every option the README's synopsis names exists on its command, and the run and serve
     options a newcomer needs are named there."""
-    from strep_core.cli import make_parser
+    from strep_cli import make_parser
 
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
     block = readme.split("## The command line", 1)[1].split("```text", 1)[1].split("```", 1)[0]

@@ -603,6 +603,32 @@ def test_formats_describe_every_dispatch(shared_data: Path) -> None:
     assert detect_format(shared_data / "carmen" / "intel-corrected.log.gz") == "carmen"
 
 
+def test_a_new_format_is_its_reader_and_one_row_of_formats(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """docs/design/extending.md: one row in `FORMATS` makes a reader detected, dispatched (with its
+    options checked), listed and, for a one-file format, accepted as an upload."""
+    import strep_core.io as io
+    from app.services.uploads import UPLOAD_FORMATS
+
+    calls = []
+
+    def read_xyz(path: Path, *, frames: str | None = None, budget: object = None, scale: float = 1.0) -> Sequence:
+        calls.append((path.name, frames, scale))
+        pts = np.loadtxt(path).reshape(4, -1, 2) * scale
+        return Sequence(frames=list(pts), name=path.stem, unit="px")
+
+    row = io.FormatInfo("xyz", (".xyz",), "text frames", read_xyz, files=(".xyz",), one_file=True)
+    monkeypatch.setattr(io, "FORMATS", (*io.FORMATS, row))
+    path = tmp_path / "walk.xyz"
+    np.savetxt(path, np.random.default_rng(0).uniform(0, 10, (4 * 20, 2)))
+    assert io.detect_format(path) == "xyz"
+    seq = io.load_sequence(path, frames="1:3", scale=2.0)
+    assert calls == [("walk.xyz", "1:3", 2.0)] and len(seq) == 4
+    with pytest.raises(ConfigError, match="do not apply to the xyz format"):
+        io.load_sequence(path, stride=2)
+    # the service derives its uploads from the same table (at import: the bundled rows here)
+    assert {fmt for _, fmt in UPLOAD_FORMATS} == {f.name for f in FORMATS if f.one_file}
+
+
 # ---- one read budget (issue 17 item 2) --------------------------------------------------------
 
 

@@ -24,7 +24,7 @@ from app.core.config import Settings
 from app.main import create_app
 from app.rrd import read_recording
 from app.viewer.scene import poses_to_matrices
-from strep_core.cli import main as strep_main
+from strep_cli import main as strep_main
 from strep_core.events import parse_event
 from strep_core.io.poses import read_tum
 

@@ -79,7 +79,7 @@ def test_a_saved_config_keeps_its_settings_whatever_the_probe_says(intel) -> Non
 def test_a_config_json_from_the_benchmark_reruns_to_the_same_ate(shared_data: Path, tmp_path: Path) -> None:
     """A 7-Scenes row (reader option stride 8, frames 0:16): its recorded input and config
     reproduce its ATE through the same path as `strep run INPUT --config config.json`."""
-    from strep_core.bench import _sevenscenes, run_case
+    from strep_bench.cases import _sevenscenes, run_case
     from strep_core.runner import run_input
 
     case = next(c for c in _sevenscenes(shared_data, quick=True) if c.name == "7scenes[0:16]")
@@ -114,7 +114,7 @@ def test_a_generated_walk_keeps_its_sensor_through_npz(tmp_path: Path) -> None:
 
 
 def test_strep_run_takes_a_profile_and_config_json_records_it(tmp_path: Path) -> None:
-    from strep_core.cli import main
+    from strep_cli import main
 
     out = tmp_path / "run"
     argv = ["run", "sample:sim2d-small", "--method", "icp", "--frames", "0:8", "--out", str(out), "--quiet"]

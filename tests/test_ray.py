@@ -258,7 +258,7 @@ def test_cancel_kills_a_ray_worker_that_ignores_it(client: TestClient) -> None:
 
 
 def test_bench_spreads_runs_over_ray(ray_runtime: None, tmp_path: Path, shared_data: Path) -> None:
-    from strep_core.cli import main
+    from strep_cli import main
 
     code = main(
         [
@@ -287,8 +287,8 @@ def test_bench_spreads_runs_over_ray(ray_runtime: None, tmp_path: Path, shared_d
 
 
 def test_bench_reports_a_dead_ray_task_as_a_failed_run(ray_runtime: None) -> None:
-    from app.bench_ray import run_cases_ray
-    from strep_core.bench import BenchCase
+    from strep_bench.cases import BenchCase
+    from strep_bench.ray_runner import run_cases_ray
 
     # nested functions: Ray ships them by value (this test module is not importable by its workers)
     def die() -> Any:

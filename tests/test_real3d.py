@@ -24,10 +24,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from strep_bench.cases import SUITES, summarize
+from strep_bench.tables import format_table
+from strep_cli import main
 from strep_core import geometry as g
 from strep_core import globalreg
-from strep_core.bench import SUITES, format_table, summarize
-from strep_core.cli import main
 from strep_core.config import RunConfig
 from strep_core.errors import ConfigError, FormatError, SequenceError
 from strep_core.io import read_conf, read_depth_folder

@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 from PIL import Image
 
-from strep_core.cli import make_parser
-from strep_core.reproduce import PLANS, VERDICTS, build_runs, claim1, claim2, estimate, reproduce
+from strep_bench.reproduce import PLANS, VERDICTS, build_runs, claim1, claim2, estimate, reproduce
+from strep_cli import make_parser
 
 NUMBER = re.compile(r"-?\d+(?:\.\d+)?(?:e[+-]?\d+)?")
 
@@ -152,3 +152,22 @@ def test_full_plan_is_sized_and_the_cli_knows_the_command(shared_data: Path) -> 
     assert quick["total"] <= 180, quick
     args = make_parser().parse_args(["reproduce", "--quick", "--out", "x", "--docs", "y.md"])
     assert args.quick and args.out == "x" and str(args.docs) == "y.md"
+
+
+def test_without_matplotlib_the_figures_name_the_extra(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """matplotlib is the ``bench`` extra, not a core dependency: its absence is one line naming it."""
+    import sys
+
+    from strep_bench.extras import MissingExtra, pyplot
+    from strep_cli import main
+    from strep_core.errors import StrepError
+
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # `import matplotlib` raises ImportError
+    with pytest.raises(MissingExtra, match=r"pip install 'strep-studio\[bench\]'") as info:
+        pyplot()
+    assert isinstance(info.value, StrepError) and "\n" not in str(info.value)
+    # before any run: the command names the extra at once, with exit code 2
+    assert main(["reproduce", "--quick", "--out", str(tmp_path), "--data", str(tmp_path / "absent")]) == 2
+    assert "strep-studio[bench]" in capsys.readouterr().err

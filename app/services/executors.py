@@ -38,6 +38,7 @@ from app.core.config import RAY_MISSING, Settings
 from app.services.protocol import JobSpec, PidMessage
 from app.services.sequences import describe_exit
 from app.services.worker import run_job
+from strep_core.errors import first_lines as _first_lines
 
 log = logging.getLogger("strep.service")
 
@@ -209,14 +210,6 @@ def forwarded_env() -> dict[str, str]:
 def ray_resources(device: str, threads: int) -> dict[str, float]:
     """The Ray resource request of a job: its CPU threads, and one GPU for ``device="cuda"``."""
     return {"num_cpus": float(threads), "num_gpus": 1.0 if device == "cuda" else 0.0}
-
-
-def _first_lines(text: str, limit: int = 300) -> str:
-    """The useful part of a Ray error: its "The actor is dead because ..." line when present."""
-    lines = [line.strip() for line in text.splitlines() if line.strip()]
-    because = [line for line in lines if line.startswith("The actor is dead because")]
-    chosen = because[0] if because else (lines[0] if lines else "no details")
-    return chosen if len(chosen) <= limit else chosen[: limit - 3] + "..."
 
 
 class RayWorker:

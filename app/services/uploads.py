@@ -17,17 +17,15 @@ from python_multipart.multipart import MultipartParser, parse_options_header
 from starlette.requests import ClientDisconnect, Request
 
 from strep_core.errors import FormatError
+from strep_core.io import FORMATS
 
 if TYPE_CHECKING:
     from python_multipart.multipart import MultipartCallbacks
 
-# (suffix, format) pairs, longest suffix first; folders of frames come zipped
-UPLOAD_FORMATS: tuple[tuple[str, str], ...] = (
-    (".log.gz", "carmen"),
-    (".npz", "npz"),
-    (".tar", "deepmapping"),
-    (".log", "carmen"),
-    (".zip", "zip"),
+# (suffix, format) pairs of the one-file formats (`strep_core.io.FORMATS`), longest suffix first;
+# folders of frames come zipped
+UPLOAD_FORMATS: tuple[tuple[str, str], ...] = tuple(
+    sorted(((s, f.name) for f in FORMATS if f.one_file for s in f.files), key=lambda pair: -len(pair[0]))
 )
 FIELD_MAX_BYTES = 1024
 MAX_PARTS = 8

@@ -12,9 +12,11 @@ Each call of `load_sequence` reads within one `ReadBudget` (`strep_core.io.limit
 inflated by every container and compressed stream it opens, and the points its readers
 build, are charged while they are read; past the budget the read stops with `FormatError`.
 
-`FORMATS` describes them for documentation and the CLI. Open3D is imported only by the
-readers that need it (``folder``, ``conf``); ``sample:NAME`` sources are resolved by
-`strep_core.samples` before `load_sequence` is called.
+`FORMATS` is the one table of formats: detection, dispatch, the CLI's and the docs' list and
+the service's accepted uploads all read it, so a new format is its reader module plus one row
+here (`docs/design/extending.md`). Open3D is imported only by the readers that need it
+(``folder``, ``conf``); ``sample:NAME`` sources are resolved by `strep_core.samples` before
+`load_sequence` is called.
 """
 
 from __future__ import annotations
@@ -67,50 +69,91 @@ __all__ = [
 DEFAULT_MAX_EXTRACT_BYTES = DEFAULT_MAX_INFLATED_BYTES  # the most one read may inflate to
 
 
-class FormatInfo(NamedTuple):
-    """One input format, for documentation, the CLI and the web page."""
-
-    name: str
-    extensions: tuple[str, ...]
-    description: str
-
-
-FORMATS: tuple[FormatInfo, ...] = (
-    FormatInfo("npz", (".npz",), "numpy archive: points + counts (or frames), optional poses, unit"),
-    FormatInfo(
-        "deepmapping",
-        (".tar",),
-        "DeepMapping 2D: NNN.pcd frames + gt_pose.mat, in a .tar or a folder (map pixels)",
-    ),
-    FormatInfo("carmen", (".log", ".log.gz"), "CARMEN laser log: FLASER scans, corrected poses (metres)"),
-    FormatInfo("conf", (".conf",), "Stanford range scans: PLY files + a .conf of bmesh poses"),
-    FormatInfo(
-        "depth",
-        (".depth.png", ".png"),
-        "folder of 16-bit depth PNGs (7-Scenes or TUM RGB-D layout) + intrinsics, optional poses",
-    ),
-    FormatInfo("folder", (".ply", ".pcd"), "folder of PLY/PCD frames, optional TUM or KITTI pose file"),
-    FormatInfo("zip", (".zip",), "a .zip holding any of the formats above"),
-)
-
-_READERS: dict[str, Callable[..., Sequence]] = {
-    "npz": read_npz,
-    "deepmapping": read_deepmapping,
-    "carmen": read_carmen,
-    "conf": read_conf,
-    "depth": read_depth_folder,
-    "folder": read_folder,
-}
-
-
-def _expected() -> str:
-    return ", ".join(f"{f.name} ({' '.join(f.extensions)})" for f in FORMATS)
-
-
 def _is_deepmapping_folder(folder: Path) -> bool:
     if not (folder / "gt_pose.mat").is_file():
         return False
     return any(p.stem.isdigit() for p in folder.glob("*.pcd"))
+
+
+def _is_conf_folder(folder: Path) -> bool:
+    return any(folder.glob("*.conf"))
+
+
+def _is_depth_folder(folder: Path) -> bool:
+    return any(folder.glob("*.depth.png")) or any((folder / "depth").glob("*.png"))
+
+
+def _is_cloud_folder(folder: Path) -> bool:
+    return any(p.suffix.lower() in (".ply", ".pcd") for p in folder.iterdir())
+
+
+class FormatInfo(NamedTuple):
+    """One input format: how it is recognised, what reads it, and how it is described."""
+
+    name: str
+    extensions: tuple[str, ...]  # for people: the suffixes of the file, or of the files in the folder
+    description: str
+    reader: Callable[..., Sequence] | None = None  # None: a container, extracted and dispatched again
+    files: tuple[str, ...] = ()  # a file whose lower-case name ends so is in this format
+    folder: Callable[[Path], bool] | None = None  # a folder for which this is true is in this format
+    one_file: bool = False  # the whole sequence is in one file: what the service accepts as an upload
+
+
+# Checked in this order: the first match wins (a folder with gt_pose.mat is DeepMapping's, not PCD frames).
+FORMATS: tuple[FormatInfo, ...] = (
+    FormatInfo(
+        "npz",
+        (".npz",),
+        "numpy archive: points + counts (or frames), optional poses, unit",
+        read_npz,
+        files=(".npz",),
+        one_file=True,
+    ),
+    FormatInfo(
+        "deepmapping",
+        (".tar",),
+        "DeepMapping 2D: NNN.pcd frames + gt_pose.mat, in a .tar or a folder (map pixels)",
+        read_deepmapping,
+        files=(".tar",),
+        folder=_is_deepmapping_folder,
+        one_file=True,
+    ),
+    FormatInfo(
+        "carmen",
+        (".log", ".log.gz"),
+        "CARMEN laser log: FLASER scans, corrected poses (metres)",
+        read_carmen,
+        files=(".log", ".log.gz"),
+        one_file=True,
+    ),
+    FormatInfo(
+        "conf",
+        (".conf",),
+        "Stanford range scans: PLY files + a .conf of bmesh poses",
+        read_conf,
+        files=(".conf",),
+        folder=_is_conf_folder,
+    ),
+    FormatInfo(
+        "depth",
+        (".depth.png", ".png"),
+        "folder of 16-bit depth PNGs (7-Scenes or TUM RGB-D layout) + intrinsics, optional poses",
+        read_depth_folder,
+        folder=_is_depth_folder,
+    ),
+    FormatInfo(
+        "folder",
+        (".ply", ".pcd"),
+        "folder of PLY/PCD frames, optional TUM or KITTI pose file",
+        read_folder,
+        folder=_is_cloud_folder,
+    ),
+    FormatInfo("zip", (".zip",), "a .zip holding any of the formats above", files=(".zip",), one_file=True),
+)
+
+
+def _expected() -> str:
+    return ", ".join(f"{f.name} ({' '.join(f.extensions)})" for f in FORMATS)
 
 
 def detect_format(source: str | Path) -> str:
@@ -124,25 +167,13 @@ def detect_format(source: str | Path) -> str:
     if not path.exists():
         raise FormatError(f"{path}: no such file or folder; expected one of {_expected()}")
     if path.is_file():
-        for suffix, fmt in (
-            (".npz", "npz"),
-            (".tar", "deepmapping"),
-            (".log", "carmen"),
-            (".log.gz", "carmen"),
-            (".conf", "conf"),
-            (".zip", "zip"),
-        ):
-            if name.endswith(suffix):
-                return fmt
+        for f in FORMATS:
+            if name.endswith(f.files):
+                return f.name
     elif path.is_dir():
-        if _is_deepmapping_folder(path):
-            return "deepmapping"
-        if any(path.glob("*.conf")):
-            return "conf"
-        if any(path.glob("*.depth.png")) or any((path / "depth").glob("*.png")):
-            return "depth"
-        if any(p.suffix.lower() in (".ply", ".pcd") for p in path.iterdir()):
-            return "folder"
+        for f in FORMATS:
+            if f.folder is not None and f.folder(path):
+                return f.name
     raise FormatError(f"{path}: unknown format; expected one of {_expected()}")
 
 
@@ -270,7 +301,7 @@ def load_sequence(
 def _read(
     fmt: str, path: Path, frames: str | FrameSelection | None, options: dict[str, Any], budget: ReadBudget
 ) -> Sequence:
-    reader = _READERS[fmt]
+    reader = next(f.reader for f in FORMATS if f.name == fmt and f.reader is not None)
     accepted = set(inspect.signature(reader).parameters) - {"path", "frames", "budget"}
     unknown = sorted(set(options) - accepted)
     if unknown:

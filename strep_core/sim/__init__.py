@@ -16,10 +16,9 @@ from strep_core.sim.depth3d import (
     sequence_room,
     simulate_3d,
 )
+from strep_core.sim.floorplan import free_distance, make_map
 from strep_core.sim.lidar2d import (
     cast_rays,
-    free_distance,
-    make_map,
     make_trajectory,
     scan,
     scan_sequence,

@@ -1,18 +1,18 @@
 """``strep bench --executor ray``: the benchmark's runs spread over a Ray cluster.
 
-Kept in ``app/`` with the service's executors: `strep_core` imports no cluster code. Every
-(case, method) pair is one Ray task running `strep_core.bench.run_case`; every node needs
-strep-studio and the shared data at the same path.
+Every (case, method) pair is one Ray task running `strep_bench.cases.run_case`; every node
+needs strep-studio and the shared data at the same path (`docs/scaling.md`). Ray is imported
+only here, and only when this runner is called.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-from app.core.config import RAY_MISSING
-from app.services.executors import _first_lines
-from strep_core.bench import BenchCase, run_case
-from strep_core.errors import ConfigError
+from strep_bench.cases import BenchCase, run_case
+from strep_core.errors import ConfigError, first_lines
+
+RAY_MISSING = "--executor ray needs Ray, an optional extra: pip install 'strep-studio[ray]'"
 
 
 def run_cases_ray(
@@ -29,7 +29,7 @@ def run_cases_ray(
     try:
         import ray
     except ImportError as exc:
-        raise ConfigError(RAY_MISSING.replace("STREP_EXECUTOR=ray", "--executor ray")) from exc
+        raise ConfigError(RAY_MISSING) from exc
     owns = not ray.is_initialized()
     if owns:
         ray.init(address=address, include_dashboard=False)
@@ -61,4 +61,4 @@ def run_cases_ray(
 def _ray_reason(exc: BaseException) -> str:
     """One line for a failed Ray task: the cause's type and its useful line."""
     cause = getattr(exc, "cause", None) or exc
-    return f"{type(cause).__name__}: {_first_lines(str(cause))}"
+    return f"{type(cause).__name__}: {first_lines(str(cause))}"

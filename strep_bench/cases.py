@@ -1,4 +1,4 @@
-"""``strep bench``: every method on the standard sequences, one table and one JSON.
+"""The benchmark's cases: the standard sequences, each method's config on them, and `run_case`.
 
 Suites (``--suites``):
 
@@ -26,18 +26,15 @@ all but four share one position), so only the map fixes a rigid alignment (as `p
 
 ``--quick`` shrinks every suite (fewer sequences, frames and iterations) to finish in minutes.
 
-`main` takes an optional ``runner`` (cases, methods, quick -> rows) in place of the loop over
-`run_case`: ``strep bench --executor ray`` passes `app.bench_ray.run_cases_ray`, which runs every
-(case, method) pair as one Ray task; rows, table and JSON are the same. Cluster code stays in
-``app/``.
+`run_case` runs the methods on one case: `strep_bench.bench` (``strep bench``) loops over the
+cases, `strep_bench.ray_runner` spreads them over Ray, and `strep_bench.reproduce` reuses the
+cases and `case_config` for the paper's claims. Every suite uses the defaults and the profile
+the probe picks: no suite has constants of its own beyond its reader options.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
-import platform
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
@@ -242,7 +239,7 @@ def run_case(case: BenchCase, methods: list[str], quick: bool, threads: int | No
     return rows
 
 
-def _num(v: Any) -> float:
+def as_number(v: Any) -> float:
     return float(v) if isinstance(v, (int, float)) and v is not None and math.isfinite(v) else math.nan
 
 
@@ -273,181 +270,8 @@ def summarize(rows: list[dict[str, Any]], methods: list[str]) -> list[dict[str, 
 
 def _finite_mean(values: list[Any]) -> float | None:
     """Mean of the finite numbers among ``values``; ``None`` when there is none (valid JSON)."""
-    nums = [v for v in map(_num, values) if math.isfinite(v)]
+    nums = [v for v in map(as_number, values) if math.isfinite(v)]
     return float(np.mean(nums)) if nums else None
 
 
 POSE_KEYS = ("pair_rot_err_mean_deg", "pair_trans_err_mean")
-
-
-def format_table(rows: list[dict[str, Any]], summary: list[dict[str, Any]], methods: list[str]) -> str:
-    """A markdown table: one row per case, ATE / point L2 / seconds per method, then means."""
-
-    def cell(r: dict[str, Any] | None) -> str:
-        if r is None:
-            return "-"
-        if r.get("status", "ok") != "ok":
-            return "failed"
-        return f"{_num(r.get('ate')):.3g} / {_num(r.get('point_l2')):.3g} / {_num(r.get('wall_seconds')):.3g}s"
-
-    head = "| suite | case | unit | " + " | ".join(methods) + " |"
-    lines = [head, "|" + "---|" * (3 + len(methods))]
-    for suite, case in dict.fromkeys((r["suite"], r["case"]) for r in rows):
-        by_m = {r["method"]: r for r in rows if r["suite"] == suite and r["case"] == case}
-        unit = next(iter(by_m.values()))["unit"]
-        lines.append(f"| {suite} | {case} | {unit} | " + " | ".join(cell(by_m.get(m)) for m in methods) + " |")
-    for suite in dict.fromkeys(s["suite"] for s in summary):
-        by_m = {s["method"]: s for s in summary if s["suite"] == suite}
-        cells = []
-        for m in methods:
-            s = by_m.get(m)
-            cells.append(
-                "-"
-                if s is None
-                else f"**{_num(s['mean_ate']):.3g}** / {_num(s['mean_point_l2']):.3g} / "
-                f"{_num(s['mean_wall_seconds']):.3g}s"
-            )
-        lines.append(f"| {suite} | **mean** | | " + " | ".join(cells) + " |")
-    pose = format_pose_table(rows, summary, methods)
-    return "\n".join(lines) + (f"\n\n{pose}" if pose else "")
-
-
-def format_pose_table(rows: list[dict[str, Any]], summary: list[dict[str, Any]], methods: list[str]) -> str:
-    """Markdown table of the real 3D suites (`POSE_ERROR_SUITES`, metres shown in mm).
-
-    Cells: ATE mm / pairwise rotation error deg / pairwise translation error mm / point L2 mm
-    (points aligned) / wall seconds; ``""`` when no row belongs to those suites.
-    """
-    sel = [r for r in rows if r["suite"] in POSE_ERROR_SUITES]
-    if not sel:
-        return ""
-
-    def mm(v: Any, unit: str) -> float:
-        return _num(v) * (1000.0 if unit == "m" else 1.0)
-
-    def cell(r: dict[str, Any] | None) -> str:
-        if r is None:
-            return "-"
-        if r.get("status", "ok") != "ok":
-            return "failed"
-        u = r.get("unit", "m")
-        return (
-            f"{mm(r.get('ate'), u):.3g} / {_num(r.get('pair_rot_err_mean_deg')):.3g}° / "
-            f"{mm(r.get('pair_trans_err_mean'), u):.3g} / {mm(r.get('point_l2'), u):.3g} / "
-            f"{_num(r.get('wall_seconds')):.3g}s"
-        )
-
-    lines = [
-        "Real 3D: ATE mm / pairwise rotation error (mean, deg) / pairwise translation error (mean, mm) / "
-        "point L2 mm (points aligned) / wall seconds",
-        "",
-        "| suite | case | " + " | ".join(methods) + " |",
-        "|" + "---|" * (2 + len(methods)),
-    ]
-    for suite, case in dict.fromkeys((r["suite"], r["case"]) for r in sel):
-        by_m = {r["method"]: r for r in sel if r["suite"] == suite and r["case"] == case}
-        lines.append(f"| {suite} | {case} | " + " | ".join(cell(by_m.get(m)) for m in methods) + " |")
-    for suite in dict.fromkeys(r["suite"] for r in sel):
-        by_s = {s["method"]: s for s in summary if s["suite"] == suite}
-        cells = []
-        for m in methods:
-            s = by_s.get(m)
-            cells.append(
-                "-"
-                if s is None
-                else f"**{1000 * _num(s['mean_ate']):.3g}** / {_num(s['mean_pair_rot_err_mean_deg']):.3g}° / "
-                f"{1000 * _num(s['mean_pair_trans_err_mean']):.3g} / {1000 * _num(s['mean_point_l2']):.3g} / "
-                f"{_num(s['mean_wall_seconds']):.3g}s"
-            )
-        lines.append(f"| {suite} | **mean** | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
-
-
-def write_docs(path: Path, table: str, report: dict[str, Any]) -> None:
-    """Write the table with the machine and settings it came from into a markdown file."""
-    m = report["machine"]
-    mode = "quick" if report["quick"] else "full"
-    text = (
-        "# Benchmarks\n\n"
-        f"Latest `strep bench{' --quick' if report['quick'] else ''}` ({mode} mode): {len(report['rows'])} runs in "
-        f"{report['wall_seconds']:.0f} s on {m['platform']}, {m['cpu_count']} CPU cores, torch {m['torch']}"
-        f"{', GPU ' + m['cuda'] if m['cuda'] else ', no GPU'}.\n\n"
-        "Cells: ATE / point L2 (in the sequence unit: px or m) / wall seconds. "
-        + (
-            "Learned methods start from scratch (identity, no classical step). "
-            if report.get("start") == "scratch"
-            else "Learned methods start from the pose-graph (`multiway`) warm start; "
-        )
-        + "CARMEN windows start every method from identity; settings are the defaults with the profile the "
-        "probe picks (`strep_core.profiles`).\n\n"
-        f"{table}\n"
-    )
-    Path(path).write_text(text)
-
-
-def machine_info() -> dict[str, Any]:
-    import os
-
-    import torch
-
-    return {
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "cpu_count": os.cpu_count(),
-        "torch": torch.__version__,
-        "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
-    }
-
-
-def main(
-    args: argparse.Namespace, runner: Callable[[list[BenchCase], list[str], bool], list[dict[str, Any]]] | None = None
-) -> int:
-    """Run the benchmark; ``runner`` replaces the sequential loop over `run_case` (see the module docstring)."""
-    from tqdm import tqdm
-
-    from strep_core.errors import ConfigError
-    from strep_core.methods import available
-
-    methods = args.methods.split(",") if args.methods else ALL_METHODS
-    known = available()
-    unknown = [m for m in methods if m not in known]
-    if unknown:
-        raise ConfigError(f"unknown methods {unknown}; choose from {list(known)}")
-    suites = args.suites.split(",") if args.suites else list(SUITES)
-    bad = [s for s in suites if s not in SUITES]
-    if bad:
-        raise ConfigError(f"unknown suites {bad}; choose from {list(SUITES)}")
-    data = args.data or DEFAULT_DATA
-    start = getattr(args, "start", None) or "pose-graph"
-    cases = [replace(c, start=start) for s in suites for c in SUITES[s](data, args.quick)]
-    rows: list[dict[str, Any]] = []
-    started = time.perf_counter()
-    executor = getattr(args, "executor", "local")
-    if runner is not None:
-        rows = runner(cases, methods, args.quick)
-    else:
-        for case in tqdm(cases, desc="bench", unit="seq"):
-            rows.extend(run_case(case, methods, args.quick))
-    summary = summarize(rows, methods)
-    table = format_table(rows, summary, methods)
-    report = {
-        "machine": machine_info(),
-        "quick": bool(args.quick),
-        "start": start,
-        "executor": executor,
-        "wall_seconds": time.perf_counter() - started,
-        "methods": methods,
-        "rows": rows,
-        "summary": summary,
-    }
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "bench.json").write_text(json.dumps(report, indent=2, allow_nan=False, default=str) + "\n")
-    (out / "bench.md").write_text(table + "\n")
-    print("cells: ATE / point L2 / wall seconds")
-    print(table)
-    print(f"wrote {out / 'bench.json'} and {out / 'bench.md'} in {report['wall_seconds']:.0f} s")
-    if args.docs:
-        write_docs(args.docs, table, report)
-        print(f"updated {args.docs}")
-    return 0

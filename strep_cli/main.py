@@ -1,5 +1,7 @@
-"""The ``strep`` command line. Thin: it parses options, calls the library, prints results.
+"""The ``strep`` command line: parses options, calls the library, prints results.
 
+It sits above both the core and the service (`docs/design/extending.md`): `strep_core`,
+`strep_bench` and `app` are imported lazily, per command, so ``strep --help`` stays fast.
 Library code raises typed errors (`strep_core.errors`); here they become a one-line message
 on stderr and a non-zero exit code, never a traceback.
 """
@@ -12,9 +14,11 @@ import os
 import sys
 from collections.abc import Sequence as Seq
 from pathlib import Path
-from typing import Any, Literal, get_args
+from typing import Any, get_args
 
-from strep_core.config import InitName, StartName
+from strep_cli.progress import ProgressMode
+from strep_cli.progress import ProgressSink as _ProgressSink
+from strep_core.config import DeviceName, InitName, ProfileName, StartName
 from strep_core.errors import StrepError
 
 EXIT_ERROR = 2
@@ -69,77 +73,6 @@ def build_config(args: argparse.Namespace) -> Any:
     if base.get("freeze") and not base.get("from_model"):
         raise StrepError("--freeze needs --from-model FILE")
     return RunConfig.build(**base)
-
-
-ProgressMode = Literal["bar", "lines", "off"]
-
-
-class _ProgressSink:
-    """Progress of every stage of a run, on stderr.
-
-    ``bar``: a line per stage (loading, warm start, writing) and a tqdm bar while optimising
-    (a terminal, or ``--progress``); ``lines``: one line per stage, the optimisation included,
-    no bar (stderr is a file or a pipe); ``off``: nothing (``--quiet``).
-    """
-
-    def __init__(self, mode: ProgressMode, method: str) -> None:
-        self.mode = mode
-        self.bar: Any = None
-        self.method = method
-        self.unit = ""
-        self.optimising = False
-
-    def _line(self, text: str) -> None:
-        if self.bar is not None:
-            from tqdm import tqdm
-
-            tqdm.write(f"{self.method}: {text}", file=sys.stderr)
-        else:
-            print(f"{self.method}: {text}", file=sys.stderr, flush=True)
-
-    def emit(self, event: Any) -> None:
-        if self.mode == "off":
-            return
-        from strep_core.events import stage_label
-
-        if event.kind == "stage":
-            self._line(f"{stage_label(event.stage)} ...")
-        elif event.kind == "start":
-            self.close()
-            self.method, self.unit, self.total, self.optimising = (
-                event.method,
-                event.unit,
-                event.total_iterations,
-                False,
-            )
-        elif event.kind == "iteration":
-            ate = f"ATE {event.ate:.4g} {self.unit}" if event.ate is not None else None
-            if event.iteration == 0:  # the starting poses: after the warm start, if any
-                self._line(f"starting poses: {ate}" if ate else "starting poses ready")
-            if not self.optimising and event.iteration < event.total:
-                self.optimising = True
-                self._line(f"optimising ({event.total} iterations) ...")
-                if self.mode == "bar":
-                    from tqdm import tqdm
-
-                    self.bar = tqdm(total=event.total, desc=self.method, unit="it", leave=False, file=sys.stderr)
-            if self.bar is not None:
-                self.bar.n = event.iteration
-                post = {k: f"{v:.4g}" for k, v in event.losses.items() if k == "total"}
-                if event.ate is not None:
-                    post["ate"] = f"{event.ate:.3g}"
-                self.bar.set_postfix(post, refresh=False)
-                self.bar.refresh()
-        elif event.kind == "result":
-            self.close()
-            ate = event.metrics.get("ate")
-            done = f"registered: ATE {ate:.4g} {self.unit}" if isinstance(ate, (int, float)) else "registered"
-            self._line(f"{done}, {event.wall_seconds:.1f} s")
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.close()
-            self.bar = None
 
 
 def _fmt(value: Any, unit: str = "") -> str:
@@ -277,11 +210,11 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from strep_core.bench import main as bench_main
+    from strep_bench.bench import main as bench_main
 
     if args.executor != "ray":
         return bench_main(args)
-    from app.bench_ray import run_cases_ray  # cluster code lives in app/, imported only when asked
+    from strep_bench.ray_runner import run_cases_ray  # Ray is imported only when asked
 
     def runner(cases: list[Any], methods: list[str], quick: bool) -> list[dict[str, Any]]:
         return run_cases_ray(cases, methods, quick, address=args.ray_address or "local", cpus=args.ray_cpus)
@@ -290,7 +223,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def cmd_reproduce(args: argparse.Namespace) -> int:
-    from strep_core.reproduce import main as reproduce_main
+    from strep_bench.reproduce import main as reproduce_main
 
     return reproduce_main(args)
 
@@ -329,10 +262,10 @@ def make_parser() -> argparse.ArgumentParser:
     )
     run.add_argument(
         "--profile",
-        choices=["auto", "none", "laser-keyframes", "laser-dense", "depth-turning", "depth-handheld"],
+        choices=get_args(ProfileName),
         help="settings for this kind of data (default auto: a probe of a few frame pairs picks one)",
     )
-    run.add_argument("--device", choices=["cpu", "cuda", "auto"])
+    run.add_argument("--device", choices=get_args(DeviceName))
     run.add_argument("--threads", type=int, help="CPU threads for torch (default: all cores)")
     run.add_argument("--config", type=Path, help="a config.json to start from")
     run.add_argument("--set", action="append", metavar="KEY=VALUE", help="any config field, e.g. loss.window=3")
