@@ -252,6 +252,13 @@ class ModelConfig(Section):
     (see `strep_core.optimize`)."""
 
     latent_dim: int | None = Field(default=None, ge=1, le=512, description="None: 16 in 2D, 24 in 3D")
+    planar_axis: list[float] | None = Field(
+        default=None,
+        min_length=3,
+        max_length=3,
+        description="3D, a level camera: pose corrections turn only about this axis and move across it "
+        "(departure: the paper regresses 6 DoF); None: 6 DoF",
+    )
     point_layers: list[Width] = Field(
         default=[64, 256, 1024], min_length=1, max_length=16, description="per-point layers of the pose decoder"
     )
@@ -324,10 +331,12 @@ class LossConfig(Section):
         description="point: squared point-to-point distances (paper); plane: distances along the "
         "matched point's normal (PCA of its neighbours in its frame)",
     )
-    robust: Literal["none", "truncated", "huber"] = Field(
+    robust: Literal["none", "truncated", "huber", "trimmed"] = Field(
         default="truncated",
-        description="none: squared distances (paper); truncated: min(d^2, threshold^2); huber",
+        description="none: squared distances (paper); truncated: min(d^2, threshold^2); huber; "
+        "trimmed: squared distances of the trim_keep fraction of each pair's closest matches",
     )
+    trim_keep: float = Field(default=0.5, gt=0, le=1, description="trimmed: fraction of each pair's matches kept")
     loop_robust: Literal["none", "truncated", "huber"] | None = Field(
         default=None,
         description="robust kernel of the spatial (loop) pairs; None: robust. A pair found by proximity overlaps "

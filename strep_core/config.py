@@ -76,6 +76,18 @@ def _overlay(given: Any, profile: dict[str, Any]) -> dict[str, Any]:
     return {**profile, **(given or {})}
 
 
+def _under(given: Any, section: type[BaseModel], profile: dict[str, Any]) -> Any:
+    """``profile``'s values under ``given``'s, as a section whose *set* fields are only ``given``'s:
+    the data's profile (`strep_core.profiles.resolve`) may still replace the others."""
+    try:
+        out = section.model_validate(_overlay(given, profile))
+    except ValidationError:
+        return _overlay(given, profile)  # reported with its field path by RunConfig's own validation
+    given_names = given.model_fields_set if isinstance(given, BaseModel) else set(given or {})
+    out.__pydantic_fields_set__ = set(given_names)
+    return out
+
+
 ProfileName = Literal["auto", "none", "laser-keyframes", "laser-dense", "depth-turning", "depth-handheld"]
 
 
@@ -133,7 +145,10 @@ class RunConfig(Section):
                 raise ValueError(f"start 'scratch' runs no classical step; init {init!r} is one (use pose-graph)")
             data = {
                 **data,
-                **{name: _overlay(data.get(name), values) for name, values in SCRATCH_PROFILE.items()},
+                **{
+                    name: _under(data.get(name), cls.model_fields[name].annotation, values)
+                    for name, values in SCRATCH_PROFILE.items()
+                },
                 "init": "identity" if init == "auto" else init,
             }
         elif start == "pose-graph" and init == "identity":

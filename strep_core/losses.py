@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 from scipy.spatial import cKDTree
 
-Robust = Literal["none", "truncated", "huber"]
+Robust = Literal["none", "truncated", "huber", "trimmed"]
 
 
 # --------------------------------------------------------------------------------------------
@@ -171,6 +171,8 @@ def chamfer_matches(
     threshold: float = 1.0,
     normals: torch.Tensor | None = None,
     weights: np.ndarray | None = None,
+    groups: np.ndarray | None = None,
+    keep: float = 0.5,
 ) -> torch.Tensor:
     """Mean robust squared distance between matched points (differentiable in ``points``).
 
@@ -183,6 +185,10 @@ def chamfer_matches(
             (point-to-plane: ``r^2 = ((a - b) . n_b)^2``); with ``robust="truncated"`` a match
             costs ``min(r^2, threshold^2)`` when its points are closer than ``threshold``, and
             ``threshold^2`` otherwise.
+
+        groups, keep: with ``robust="trimmed"``, the group (frame pair) of each match; only the
+            ``keep`` fraction of each group's matches with the smallest distances count
+            (trimmed Chamfer: the part of a partial overlap that matches nothing has no pull).
 
     Returns:
         Scalar: ``mean_q rho(|points[src_q] - points[idx_q]|^2)`` (point to point).
@@ -198,6 +204,11 @@ def chamfer_matches(
     def mean(x: torch.Tensor) -> torch.Tensor:
         return x.mean() if wt is None else (x * wt).mean()
 
+    if robust == "trimmed":
+        kept = torch.as_tensor(trimmed_mask(d2.detach().cpu().numpy(), groups, keep), device=points.device)
+        r2 = d2 if normals is None else (diff * normals.index_select(0, t)).sum(-1) ** 2
+        w = kept.to(points.dtype) if wt is None else kept.to(points.dtype) * wt
+        return (r2 * w).sum() / w.sum().clamp_min(1e-12)
     if normals is None:
         return mean(robust_squared(d2, robust=robust, threshold=threshold))
     r2 = (diff * normals.index_select(0, t)).sum(-1) ** 2
@@ -205,6 +216,17 @@ def chamfer_matches(
         t2 = threshold * threshold
         return mean(torch.where(d2 < t2, torch.clamp(r2, max=t2), torch.full_like(r2, t2)))
     return mean(robust_squared(r2, robust=robust, threshold=threshold))
+
+
+def trimmed_mask(d2: np.ndarray, groups: np.ndarray | None, keep: float) -> np.ndarray:
+    """``(Q,)`` bool: the ``keep`` fraction (at least one) of each group's matches with the smallest ``d2``."""
+    groups = np.zeros(len(d2), np.int64) if groups is None else np.asarray(groups)
+    _, gid, counts = np.unique(groups, return_inverse=True, return_counts=True)
+    order = np.lexsort((d2, gid))
+    first = np.r_[0, np.cumsum(counts)[:-1]]
+    rank = np.empty(len(d2), np.int64)
+    rank[order] = np.arange(len(d2)) - first[gid[order]]
+    return rank < np.maximum(1, np.ceil(keep * counts[gid]))
 
 
 def weak_directions(normals: np.ndarray) -> np.ndarray:

@@ -208,6 +208,18 @@ def correction_pose(vector: torch.Tensor, *, translation_scale: float = 1.0) -> 
     return g.pose_from_vector(v)
 
 
+def planar_vector(vector: torch.Tensor, axis: list[float]) -> torch.Tensor:
+    """3D pose vectors ``(B, 6)`` = ``(t, omega)`` limited to turns about ``axis`` and moves across it.
+
+    A level camera (`ModelConfig.planar_axis`): applied to the corrections of poses that are
+    level already (identity), every pose stays level.
+    """
+    v = torch.as_tensor(axis, dtype=vector.dtype, device=vector.device)
+    v = v / v.norm()
+    t, w = vector[..., :3], vector[..., 3:]
+    return torch.cat([t - (t @ v)[..., None] * v, (w @ v)[..., None] * v], -1)
+
+
 def compose_correction(init: torch.Tensor, corr: torch.Tensor, *, composition: Composition) -> torch.Tensor:
     """Apply corrections ``corr (B, D+1, D+1)`` to warm-start poses ``init (B, D+1, D+1)``.
 

@@ -48,7 +48,7 @@ from strep_core.config import ModelConfig, RunConfig
 from strep_core.errors import ConfigError
 from strep_core.events import IterationEvent, pose_list
 from strep_core.methods.base import MethodOutput, RunContext
-from strep_core.model import StrepModel, Variant, compose_correction, correction_pose
+from strep_core.model import StrepModel, Variant, compose_correction, correction_pose, planar_vector
 from strep_core.sequence import Sequence
 
 
@@ -57,6 +57,8 @@ def _poses(
 ) -> torch.Tensor:
     """``(B, D+1, D+1)`` normalised poses of ``frames`` (decoder + composition)."""
     vec = model(prep.decoder_points.index_select(0, frames), frames, latents)
+    if cfg.planar_axis is not None and vec.shape[-1] == 6:
+        vec = planar_vector(vec, cfg.planar_axis)
     corr = correction_pose(vec, translation_scale=cfg.translation_scale)
     return compose_correction(prep.init.index_select(0, frames), corr, composition=cfg.composition)
 
@@ -279,6 +281,8 @@ def _optimize(
                         threshold=threshold(it),
                         normals=normals,
                         weights=None if weight is None else weight[sel],
+                        groups=(owner[src] * k + target)[sel],
+                        keep=lc.trim_keep,
                     )
                     * (sel.sum() / max(len(src), 1))
                     for sel, robust in kernels

@@ -76,6 +76,18 @@ PROFILES: dict[str, dict[str, dict[str, Any]]] = {
 }
 PROFILE_NAMES = tuple(PROFILES)
 
+# Further overlays for runs from scratch (`RunConfig.start` "scratch"), over `SCRATCH_PROFILE`.
+# A camera turning 30 degrees in place shares about half its view with the next frame: the Huber
+# Chamfer's minimum then lies at half the turn, the trimmed one's at the turn, and frames two apart
+# barely overlap; the camera stays level, so corrections turn about its vertical axis only
+# (docs/design/from-scratch.md, "Simulated 3D walks").
+SCRATCH_OVERLAYS: dict[str, dict[str, dict[str, Any]]] = {
+    "depth-turning": {
+        "model": {"planar_axis": [0.0, -1.0, 0.0]},  # replaced by the sensor's own vertical axis when known
+        "loss": {"robust": "trimmed", "window": 1},
+    },
+}
+
 PROBE_PAIRS = 12  # consecutive pairs measured, spread evenly over the sequence
 KEYFRAME_STEP = 0.15  # median step (fraction of the scale) above which 2D scans are keyframes
 KEYFRAME_TURN = 15.0  # largest turn (degrees) above which 2D scans are keyframes
@@ -197,14 +209,20 @@ def probe(seq: Sequence) -> ProbeResult:
     return ProbeResult("depth-handheld", f"{kind} sensor, {said} (< {TURNING_TURN:.0f} deg)", measures)
 
 
-def overlay(name: str, seq: Sequence | None = None) -> dict[str, dict[str, Any]]:
-    """The overlay of profile ``name`` per section; ``depth-turning`` turns about the sensor's
-    own vertical axis when ``seq`` records one."""
+def overlay(name: str, seq: Sequence | None = None, *, scratch: bool = False) -> dict[str, dict[str, Any]]:
+    """The overlay of profile ``name`` per section (with its `SCRATCH_OVERLAYS` part when
+    ``scratch``); ``depth-turning`` turns about the sensor's own vertical axis when ``seq``
+    records one."""
     out = {section: dict(values) for section, values in PROFILES[name].items()}
+    if scratch:
+        for section, values in SCRATCH_OVERLAYS.get(name, {}).items():
+            out[section] = {**out.get(section, {}), **values}
     if name == "depth-turning" and seq is not None:
         axis = sensor_of(seq).get("vertical_axis")
         if axis is not None:
             out["classical"]["icp_yaw_axis"] = tuple(float(c) for c in axis)
+            if "planar_axis" in out.get("model", {}):
+                out["model"]["planar_axis"] = [float(c) for c in axis]
     return out
 
 
@@ -224,7 +242,8 @@ def resolve(config: Any, seq: Sequence) -> Any:
         name = config.profile
         reason = config.profile_reason or "given"
     update: dict[str, Any] = {"profile": name, "profile_reason": reason}
-    for section, values in overlay(name, seq).items():
+    for section, values in overlay(name, seq, scratch=config.start == "scratch").items():
         current = getattr(config, section)
-        update[section] = type(current).model_validate(_overlay(current, values))
+        # the profile's values over the defaults (and over SCRATCH_PROFILE's), under the fields given
+        update[section] = type(current).model_validate({**current.model_dump(), **_overlay(current, values)})
     return config.model_copy(update=update)
