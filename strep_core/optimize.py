@@ -13,7 +13,10 @@ Decisions (the measurements behind each: docs/design/warm-start.md, docs/design/
 * the decoder's last layer starts at zero, so iteration 0 (an `IterationEvent`) is exactly the
   starting poses and every chart starts there;
 * truncated or Huber Chamfer, point-to-plane by default, threshold annealed: the paper's plain
-  squared distances diverge under partial overlap;
+  squared distances diverge under partial overlap; trimmed (each pair's closest matches) for a
+  camera turning in place from scratch, where Huber's minimum lies at half of every turn;
+* ``model.planar_axis``: corrections turn about a level camera's vertical axis only (a departure
+  from the paper's 6 DoF, on only where the probe finds a turning camera, from scratch);
 * occupancy BCE off by default (measured worse); loop pairs from halfway, weighted by the frames
   they span, close the chain from scratch;
 * Adam with a cosine schedule; cost per iteration linear in frames and points
