@@ -3,16 +3,14 @@
 The worker reads the upload (in its own process, within the service's limits), selects the
 run's frames, and writes them to ``scene.npz`` in the job's folder before the method starts
 (`write_scene`, atomic). The live viewer and the comparison recordings read that file
-(`read_scene`), so the API process never parses an uploaded input.
-
-Keys: ``points`` ``(M, D)`` float32 and ``counts`` ``(K,)`` (the frames, concatenated),
-``origins`` ``(K, D)``, ``indices`` ``(K,)`` (frame indices in the input), ``unit``, ``name``,
-optional ``poses`` ``(K, D+1, D+1)`` (ground truth) and ``colors`` ``(M, 3)`` uint8.
+(`read_scene`), so the API process never parses an uploaded input. The file is the project's
+own ``.npz`` format (`strep_core.io.npz`), uncompressed: points (float32), frames, origins,
+indices, unit, name, ground truth, sensor and colours.
 """
 
 from __future__ import annotations
 
-import os
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -21,47 +19,21 @@ SCENE = "scene.npz"
 
 def write_scene(seq: Any, path: str | Path) -> Path:
     """Write the `Sequence` ``seq`` to ``path`` (a temporary name, then renamed into place)."""
-    import numpy as np
+    from strep_core.io.npz import write_npz
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    arrays: dict[str, Any] = {
-        "points": np.concatenate(seq.frames).astype(np.float32),
-        "counts": np.array([len(f) for f in seq.frames], dtype=np.int64),
-        "origins": np.asarray(seq.origins, dtype=np.float64),
-        "indices": np.asarray(seq.indices, dtype=np.int64),
-        "unit": np.array(seq.unit),
-        "name": np.array(seq.name),
-    }
-    if seq.poses is not None:
-        arrays["poses"] = np.asarray(seq.poses, dtype=np.float64)
-    if seq.colors is not None:
-        arrays["colors"] = np.concatenate(seq.colors).astype(np.uint8)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as f:
-        np.savez(f, **arrays)
-    os.replace(tmp, path)
+    write_npz(seq, path, compressed=False)
     return path
 
 
 def read_scene(path: str | Path) -> Any:
-    """The `Sequence` written by `write_scene` (no pickles; ``FileNotFoundError`` if absent)."""
-    import numpy as np
+    """The `Sequence` written by `write_scene` (``FileNotFoundError`` if absent)."""
+    from strep_core.io.limits import ReadBudget
+    from strep_core.io.npz import read_npz
 
-    from strep_core.sequence import Sequence
-
-    with np.load(Path(path), allow_pickle=False) as data:
-        counts = data["counts"]
-        cuts = np.cumsum(counts)[:-1]
-        frames = np.split(data["points"].astype(np.float64), cuts)
-        colors = np.split(data["colors"], cuts) if "colors" in data else None
-        return Sequence(
-            frames=frames,
-            name=str(data["name"]),
-            unit=str(data["unit"]),  # type: ignore[arg-type]
-            origins=data["origins"],
-            poses=data.get("poses"),
-            indices=data["indices"],
-            colors=colors,
-            meta={"source": str(path), "format": "scene"},
-        )
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(path)
+    # written by the job's own worker from an input already read within the service's limits
+    return read_npz(path, budget=ReadBudget(max_inflated_bytes=sys.maxsize, max_points=sys.maxsize))

@@ -18,6 +18,7 @@ name           str                          optional name
 sensor         str                          optional ``"laser"`` or ``"depth"`` (what took it)
 vertical_axis  (3,) float                   optional: the sensor's up direction in its own
                                             frame (a level depth camera, OpenCV axes: 0 -1 0)
+colors         (M, 3) uint8                 optional per-point colours (viewers only)
 ============== ============================ ==============================================
 
 Object arrays are refused (no pickles). Arrays are read in chunks, each charged to the read's
@@ -98,12 +99,14 @@ def read_npz(
         pts = np.asarray(data["points"])
         if counts.ndim != 1 or (counts < 0).any() or counts.sum() != len(pts):
             raise FormatError(f"{path}: 'counts' must be non-negative and sum to len(points) = {len(pts)}")
-        chunks = np.split(pts, np.cumsum(counts)[:-1]) if len(counts) else []  # no counts: no frames
+        cuts = np.cumsum(counts)[:-1]
+        chunks = np.split(pts, cuts) if len(counts) else []  # no counts: no frames
     elif "frames" in data:
         arr = np.asarray(data["frames"])
         if arr.ndim != 3:
             raise FormatError(f"{path}: 'frames' must have shape (K, N, D), not {arr.shape}")
         chunks = list(arr)
+        cuts = np.cumsum([len(c) for c in chunks])[:-1]
     else:
         raise FormatError(f"{path}: needs keys 'points' and 'counts', or 'frames'")
     unit = str(data["unit"]) if "unit" in data else "m"
@@ -126,6 +129,7 @@ def read_npz(
             poses=data.get("poses"),
             initial_poses=data.get("initial_poses"),
             indices=data.get("indices"),
+            colors=np.split(np.asarray(data["colors"], dtype=np.uint8), cuts) if "colors" in data else None,
             meta=meta,
         )
     except (ValueError, TypeError) as exc:
@@ -149,6 +153,8 @@ def write_npz(seq: Sequence, path: str | Path, *, compressed: bool = True) -> No
         arrays["poses"] = seq.poses
     if seq.initial_poses is not None:
         arrays["initial_poses"] = seq.initial_poses
+    if seq.colors is not None:
+        arrays["colors"] = np.concatenate(seq.colors).astype(np.uint8)
     sensor = seq.meta.get("sensor") if isinstance(seq.meta, dict) else None
     if isinstance(sensor, dict) and sensor.get("kind") in ("laser", "depth"):
         arrays["sensor"] = np.array(sensor["kind"])
