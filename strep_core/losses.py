@@ -204,14 +204,13 @@ def chamfer_matches(
     def mean(x: torch.Tensor) -> torch.Tensor:
         return x.mean() if wt is None else (x * wt).mean()
 
+    r2 = d2 if normals is None else (diff * normals.index_select(0, t)).sum(-1) ** 2
     if robust == "trimmed":
         kept = torch.as_tensor(trimmed_mask(d2.detach().cpu().numpy(), groups, keep), device=points.device)
-        r2 = d2 if normals is None else (diff * normals.index_select(0, t)).sum(-1) ** 2
         w = kept.to(points.dtype) if wt is None else kept.to(points.dtype) * wt
         return (r2 * w).sum() / w.sum().clamp_min(1e-12)
     if normals is None:
         return mean(robust_squared(d2, robust=robust, threshold=threshold))
-    r2 = (diff * normals.index_select(0, t)).sum(-1) ** 2
     if robust == "truncated":
         t2 = threshold * threshold
         return mean(torch.where(d2 < t2, torch.clamp(r2, max=t2), torch.full_like(r2, t2)))

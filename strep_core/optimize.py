@@ -274,6 +274,8 @@ def _optimize(
             spatial = span > lc.window
             weight = np.minimum(1.0, lc.window / span) if lc.loop_weight == "span" else None
             kernels = [(~spatial, lc.robust), (spatial, lc.loop_robust or lc.robust)]
+            # the frame pair of each match, for the trimmed kernel's per-pair ranking only
+            groups = owner[src] * k + target if lc.robust == "trimmed" else None
             terms["chamfer"] = sum(
                 (
                     losses.chamfer_matches(
@@ -284,7 +286,7 @@ def _optimize(
                         threshold=threshold(it),
                         normals=normals,
                         weights=None if weight is None else weight[sel],
-                        groups=(owner[src] * k + target)[sel],
+                        groups=None if groups is None else groups[sel],
                         keep=lc.trim_keep,
                     )
                     * (sel.sum() / max(len(src), 1))
