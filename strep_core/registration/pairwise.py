@@ -11,11 +11,12 @@ A pairwise result ``T`` maps *source* coordinates into *target* coordinates:
 * ``scales``: one ICP stage per multiplier of ``max_correspondence``, in order; a stage that
   matches fewer than ``min_fitness`` of the source points (or none) is discarded with the stages
   after it, and the transform stays where the previous stage left it (the guess if it is the
-  first): this stops the rare runaway of point-to-plane ICP on a few degenerate matches;
+  first): this stops the rare runaway of point-to-plane ICP on a few degenerate matches; in 3D
+  a failed point-to-plane stage is first retried point-to-point from the same start;
 * ``kernel``: Tukey robust-kernel width as a fraction of each stage's distance (``None``: L2);
 * ``yaw_search``: yaw offsets (about the source's sensor, axis ``yaw_axis``) added to the guess
-  as extra starts of the coarsest stage; the start matching the most source points within the
-  finest distance (ties: the lower RMSE) goes on. Point-to-plane ICP converges only from within
+  as extra starts of the coarsest stage; the start with the lowest trimmed distance
+  (`trimmed_distance`: the closest half of the matches both ways) goes on. Point-to-plane ICP converges only from within
   about 10 degrees; laser keyframes turn by up to 20 to 30;
 * ``degeneracy``: after the last stage, translation along directions the matched normals barely
   constrain returns to the guess's (`keep_guess_where_weak`); 0: off;
@@ -152,7 +153,7 @@ def _icp_stages(
     stages = tuple(scales)
     if yaw_search:
         # the search runs the coarsest stage from every start: go on from its best result
-        best = _best_yaw_start(source, target, current, yaw_search, d * scales[0], d * min(scales), params, criteria)
+        best = _best_yaw_start(source, target, current, yaw_search, d * scales[0], params, criteria)
         if best is None:  # the coarsest stage failed from every start, ``init`` included
             return PairResult(transformation=current, fitness=0.0, inlier_rmse=0.0, kept_guess=True)
         (current, fitness, rmse), stages = best, stages[1:]
@@ -235,6 +236,13 @@ def _icp_stage(
         else reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=kernel * distance))
     )
     result = reg.registration_icp(source, target, distance, start, estimation, criteria)
+    if not params.planar and (result.fitness <= 0.0 or result.fitness < params.min_fitness):
+        # Open3D's point-to-plane solve has no damping: a level camera that sees only walls leaves
+        # its vertical move unconstrained and the first step runs away; point-to-point cannot
+        # (docs/design/profiles.md, "Turning depth cameras")
+        result = reg.registration_icp(
+            source, target, distance, start, reg.TransformationEstimationPointToPoint(), criteria
+        )
     if result.fitness <= 0.0 or result.fitness < params.min_fitness:
         return None
     transform = np.asarray(result.transformation)
@@ -247,29 +255,46 @@ def _best_yaw_start(
     init: np.ndarray,
     offsets: tuple[float, ...],
     coarse: float,
-    fine: float,
     params: RegistrationParams,
     criteria: Any,
 ) -> tuple[np.ndarray, float, float] | None:
     """The best of ``init`` and ``init`` turned about ``params.yaw_axis`` by each yaw offset, each
-    refined by one coarse ICP stage, scored by fitness (then RMSE) within ``fine``.
+    refined by one coarse ICP stage, scored by `trimmed_distance` (lowest wins).
+
+    Fitness (matches within the finest distance) picked the wrong start on turns: a frame turned by 30 degrees shares
+    half its view, and sliding it half-way back keeps as many points matched; the trimmed
+    distance is lowest at the turn (docs/design/profiles.md, "Turning depth cameras").
 
     Returns that candidate's coarse stage ``(transform, fitness, inlier RMSE)``, or ``None``
     when the stage fails from every start."""
-    from strep_core._open3d import o3d
-
-    best, best_key = None, (-1.0, 0.0)
+    best, best_score = None, np.inf
     for yaw in (0.0, *offsets):
         turn = np.eye(4)
         turn[:3, :3] = g.so3_exp(np.asarray(params.yaw_axis, dtype=np.float64) * yaw)
         stage = _icp_stage(source, target, init @ turn, coarse, params, criteria)
         if stage is None:
             continue
-        ev = o3d.pipelines.registration.evaluate_registration(source, target, fine, stage[0])
-        key = (round(float(ev.fitness), 3), -float(ev.inlier_rmse))
-        if key > best_key:
-            best, best_key = stage, key
+        score = trimmed_distance(np.asarray(source.points), np.asarray(target.points), stage[0])
+        if score < best_score:
+            best, best_score = stage, score
     return best
+
+
+def trimmed_distance(source: np.ndarray, target: np.ndarray, transform: np.ndarray, keep: float = 0.5) -> float:
+    """Symmetric trimmed nearest-neighbour distance of ``source`` moved by ``transform`` and
+    ``target``: the mean of each side's closest ``keep`` fraction of distances, averaged over
+    both sides. The same criterion as the trimmed Chamfer kernel of the learned methods
+    (`strep_core.losses`), which has its minimum at the true turn of half-overlapping views."""
+    from scipy.spatial import cKDTree
+
+    d = source.shape[1]
+    moved = source @ transform[:d, :d].T + transform[:d, d]
+    sides = (cKDTree(target).query(moved)[0], cKDTree(moved).query(target)[0])
+    out = 0.0
+    for dist in sides:
+        n = max(1, int(len(dist) * keep))
+        out += float(np.partition(dist, n - 1)[:n].mean())
+    return out / 2
 
 
 def align_frames(
