@@ -192,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
     config: dict[str, Any] = (
         {"optim": {"iterations": args.iterations, "event_interval": 1}}
         if learned
-        else {"classical": {"event_interval": 2}}
+        else {"classical": {"event_interval_frames": 2}}
     )
 
     tmp = Path(tempfile.mkdtemp(prefix="strep-load-"))

@@ -21,6 +21,7 @@ import time
 
 import numpy as np
 
+from app.core.config import ViewerSettings
 from app.viewer import ViewerServer
 from strep_core import geometry as g
 from strep_core.events import IterationEvent, StartEvent, pose_list
@@ -52,7 +53,7 @@ def main() -> None:
         )
         for i in range(1, n + 1)
     ]
-    viewer = ViewerServer(port=0, max_rate_hz=args.max_rate)
+    viewer = ViewerServer(port=0, settings=ViewerSettings(max_rate_hz=args.max_rate))
     rows = []
     try:
         ids = [f"job{j}" for j in range(args.jobs)]

@@ -238,33 +238,22 @@ async function follow(job) {
   }
 }
 
-// How each event kind changes a job's entry: the page's side of strep_core/runstate.py's
-// REDUCERS (same kinds, same rules), plus the job store's own "status" records. A kind not
-// listed here changes nothing (docs/design/extending.md).
-const REDUCERS = {
-  start(entry, ev) {
-    entry.started = true;
-    entry.total = ev.total_iterations;
-    entry.unit = ev.unit;
-  },
-  stage(entry, ev) {
-    entry.stage = ev.stage;
-  },
-  iteration(entry, ev) {
-    entry.iteration = ev.iteration; entry.total = ev.total; entry.elapsed = ev.elapsed;
-    if (ev.losses && ev.losses.total != null) entry.loss.push([ev.iteration, ev.losses.total]);
-    if (ev.ate != null) { entry.ate.push([ev.iteration, ev.ate]); entry.lastAte = ev.ate; }
-    if (ev.iteration === 0) entry.startAte = ev.ate;
-  },
-  result(entry, ev) {
-    entry.metrics = ev.metrics;
-  },
-  status(entry, ev) {
-    entry.status = ev.status;
-    if (ev.error) entry.error = ev.error;
-  },
-};
-const ignore = () => {};
+// How each event kind changes a job's entry: the rules the service serves (GET /api/events/rules:
+// strep_core.runstate.PAGE_RULES plus the job store's "status" records), loaded at start and
+// applied here; a kind without rules changes nothing (docs/design/extending.md).
+let RULES = {};
+const pick = (ev, path) => path.split(".").reduce((v, k) => (v == null ? v : v[k]), ev);
+function applyRules(entry, ev, rules) {
+  for (const r of rules) {
+    if (r.if && Object.entries(r.if).some(([path, want]) => pick(ev, path) !== want)) continue;
+    const value = "value" in r ? r.value : Array.isArray(r.from) ? r.from.map((p) => pick(ev, p)) : pick(ev, r.from);
+    if (r.push) {
+      if (!value.some((v) => v == null)) entry[r.push].push(value);
+    } else if (!(r.skip_null && value == null)) {
+      entry[r.set] = value;
+    }
+  }
+}
 
 function handleMessage(entry, block) {
   let kind = "message", id = null;
@@ -278,7 +267,7 @@ function handleMessage(entry, block) {
   if (!data.length) return;
   let ev;
   try { ev = JSON.parse(data.join("\n")); } catch { return; }
-  (Object.hasOwn(REDUCERS, kind) ? REDUCERS[kind] : ignore)(entry, ev);
+  if (Object.hasOwn(RULES, kind)) applyRules(entry, ev, RULES[kind]);
   scheduleRedraw();
 }
 
@@ -469,6 +458,7 @@ async function init() {
       if (state.viewer) link.href = state.viewer;
       else link.hidden = true;
     }
+    RULES = (await api("/api/events/rules")).rules;
     await Promise.all([loadSequences(), loadMethods(), loadJobs()]);
     redraw();
   } catch (err) {

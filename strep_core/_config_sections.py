@@ -1,12 +1,14 @@
-"""The sections of the run config, one per concern: classical baselines, model, loss,
-optimiser, reader options. `strep_core.config` composes them into `RunConfig` (and re-exports
-them: import them from there)."""
+"""The sections of the run config, one per concern: model, loss, optimiser, reader options (the
+classical baselines' section is `strep_core._config_classical`). `strep_core.config` composes
+them into `RunConfig` (and re-exports them: import them from there)."""
 
 from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from strep_core._config_migrate import migrate_section
 
 # A layer width, and the most points any per-frame count may ask for: bounds that keep a
 # request from allocating terabytes in a worker (the defaults are far below them).
@@ -19,229 +21,6 @@ class Section(BaseModel):
 
     # allow_inf_nan=False: Infinity/NaN (which JSON bodies may carry) are refused, never stored as null
     model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
-
-
-# ---- classical baselines -------------------------------------------------------------------
-
-
-class ClassicalConfig(Section):
-    """Settings of the classical baselines (`icp`, `multiway`, `kiss`).
-
-    Lengths left at ``None`` are derived from the data as ``fraction * Sequence.scale()``
-    (the median point range), so one set of defaults serves pixels and metres; see
-    `strep_core.registration` and `strep_core.methods.classical` for the rules.
-    """
-
-    # ---- ICP (icp, multiway's edges)
-    max_correspondence: float | None = Field(
-        default=None, gt=0, description="ICP correspondence distance (sequence unit); None: from data"
-    )
-    correspondence_fraction: float = Field(
-        default=0.16, gt=0, le=10, description="correspondence distance = this * scale when not given"
-    )
-    icp_scales: list[float] = Field(
-        default=[2.0, 1.0, 0.5],
-        min_length=1,
-        max_length=16,
-        description="coarse-to-fine ICP stages, multipliers of the correspondence distance",
-    )
-    icp_iterations: int = Field(default=50, ge=1, le=1000, description="ICP iterations per stage")
-    icp_min_fitness: float = Field(
-        default=0.1, ge=0, le=1, description="discard an ICP stage matching fewer source points than this"
-    )
-    icp_kernel: float | None = Field(
-        default=None, gt=0, le=10, description="Tukey kernel width, fraction of the stage's distance; None: L2"
-    )
-    icp_yaw_search: float = Field(
-        default=0.0,
-        ge=0,
-        le=180,
-        description="ICP: also start the coarsest stage from the guess turned about the sensor's vertical "
-        "axis by up to +-this many degrees (every icp_yaw_step) and keep the best match; in 3D only with "
-        "icp_yaw_axis; 0: the guess alone",
-    )
-    icp_motion_prior: Literal["init", "velocity"] = Field(
-        default="init",
-        description="incremental ICP's guess for each pair: the initial guess's relative motion, or the "
-        "previous pair's estimated motion (constant velocity)",
-    )
-    icp_yaw_step: float = Field(default=10.0, gt=0, le=180, description="ICP yaw search step (degrees)")
-    icp_yaw_axis: tuple[float, float, float] | None = Field(
-        default=None,
-        description="3D ICP: the sensor's vertical axis in its own frame, about which the yaw search turns "
-        "(e.g. [0, -1, 0] for a level camera with OpenCV axes, [0, 0, 1] for a level LiDAR); None: no yaw "
-        "search in 3D (2D always turns about z)",
-    )
-    icp_correlative: float = Field(
-        default=0.0,
-        ge=0,
-        le=100,
-        description="2D ICP: also start from a correlative scan match (an exhaustive yaw and translation "
-        "search on a likelihood field) within +-this many correspondence distances and +-icp_correlative_yaw "
-        "degrees of the guess, and keep it when it matches more points; 0: off",
-    )
-    icp_correlative_yaw: float = Field(
-        default=60.0, gt=0, le=180, description="correlative scan match: yaw window (degrees, 1 degree steps)"
-    )
-    icp_global: Literal["auto", "on", "off"] = Field(
-        default="auto",
-        description="ICP: also start each consecutive pair from a global scan match (branch and bound over every "
-        "heading and +-icp_global_window * scale, `strep_core.scanmatch`) and keep it when ICP from there matches "
-        "more points; auto: on for 2D sequences (planar scans), off in 3D",
-    )
-    icp_global_window: float = Field(
-        default=1.5, gt=0, le=20, description="global scan match: translation window, fraction of the scale"
-    )
-    icp_global_resolution: float = Field(
-        default=0.025, gt=0, le=1, description="global scan match: finest grid cell, fraction of the scale"
-    )
-    icp_global_yaw_step: float = Field(
-        default=1.0, gt=0, le=30, description="global scan match: finest yaw step (degrees)"
-    )
-    icp_global_yaw_window: float = Field(
-        default=180.0,
-        gt=0,
-        le=180,
-        description="global scan match of consecutive pairs: headings within +-this many degrees of the guess's "
-        "(180: the full circle; loop closures always search the full circle)",
-    )
-    icp_global_range: float = Field(
-        default=8.0, gt=0, le=1000, description="global scan match: source points within this fraction of the scale"
-    )
-    icp_global_prior: float = Field(
-        default=0.2,
-        ge=0,
-        le=10,
-        description="global scan match: score lost (mean likelihood, 0 to 1) by a translation one scale away "
-        "from the previous pair's (quadratic): breaks the ties of corridors in favour of steady motion; 0: none",
-    )
-    icp_global_prior_stop: float = Field(
-        default=0.1,
-        ge=0,
-        le=10,
-        description="global scan match: a step prior (median of the last steps) shorter than this fraction of the "
-        "scale is a stop (turns in place): the median of the last longer steps replaces it "
-        "(docs/design/scan-matching.md, fourth part); 0: never",
-    )
-    icp_degeneracy: float = Field(
-        default=0.0,
-        ge=0,
-        le=0.5,
-        description="keep the guess's translation along directions that the matched target normals constrain "
-        "weakly: smallest eigenvalues of their mean outer product below this (a view of one wall, a corridor); "
-        "0: off",
-    )
-    local_map_frames: int = Field(
-        default=5, ge=1, le=50, description="icp: register each frame to the union of this many previous ones"
-    )
-    voxel: float | None = Field(
-        default=None, ge=0, description="voxel size for downsampling (sequence unit; 0: none); None: from data"
-    )
-    voxel_fraction: float = Field(default=0.01, ge=0, le=1, description="voxel = this * scale when not given")
-    normal_neighbours: int = Field(default=6, ge=2, le=100, description="2D normals: PCA neighbourhood size")
-    normal_radius: float | None = Field(
-        default=None, gt=0, description="3D normals: search radius (sequence unit); None: from data"
-    )
-    normal_radius_factor: float = Field(
-        default=2.0, gt=0, le=100, description="3D normal radius = this * max(voxel, point spacing) when not given"
-    )
-    normal_max_nn: int = Field(default=30, ge=3, le=1000, description="3D normals: at most this many neighbours")
-    # ---- multiway pose graph
-    loop_radius: float | None = Field(
-        default=None, gt=0, description="multiway: loop-closure search radius (sequence unit); None: from data"
-    )
-    loop_radius_fraction: float = Field(
-        default=0.8, gt=0, le=100, description="loop radius = this * scale when not given"
-    )
-    loop_min_gap: int = Field(
-        default=2, ge=2, le=10_000, description="loop closures only between frames at least this far apart"
-    )
-    loop_min_fitness: float = Field(default=0.6, ge=0, le=1, description="keep a loop edge above this ICP fitness")
-    loop_max_candidates: int = Field(default=8, ge=0, le=100, description="loop edges tried per frame")
-    loop_scales: list[float] | None = Field(
-        default=None,
-        min_length=1,
-        max_length=16,
-        description="ICP stages of loop-closure edges; None: icp_scales without its coarsest stage",
-    )
-    edge_prune_threshold: float = Field(
-        default=0.25, ge=0, le=1, description="pose graph: line-process weight below which a loop edge is pruned"
-    )
-    loop_preference: float = Field(
-        default=1.0,
-        gt=0,
-        le=100,
-        description="pose graph: Open3D's preference_loop_closure (below 1: trust odometry edges more, above 1: "
-        "loop closures more)",
-    )
-    loop_global: Literal["auto", "on", "off"] = Field(
-        default="auto",
-        description="multiway, 2D: loop closures proposed by the global scan matcher (each keyframe against earlier "
-        "ones within loop_global_radius * scale of its estimate, accepted above loop_global_score, refined by ICP) "
-        "instead of by proximity alone; auto: on for 2D sequences when icp_global is on",
-    )
-    loop_global_radius: float = Field(
-        default=3.0, gt=0, le=100, description="global loop closures: search radius, fraction of the scale"
-    )
-    loop_global_score: float = Field(
-        default=0.6, ge=0, le=1, description="global loop closures: least matcher score (mean likelihood) to accept"
-    )
-    odometry_uncertain: Literal["auto", "on", "off"] = Field(
-        default="auto",
-        description="multiway: odometry edges may be pruned by the line process like loop closures (a wrong "
-        "consecutive match then yields to the loops around it); auto: on with the global loop closures",
-    )
-    loop_global_every: int = Field(
-        default=2, ge=1, le=1000, description="global loop closures: try every this many frames"
-    )
-    loop_global_candidates: int = Field(
-        default=3, ge=0, le=100, description="global loop closures: earlier frames tried per frame, nearest first"
-    )
-    loop_global_turn: float = Field(
-        default=45.0,
-        gt=0,
-        le=180,
-        description="global loop closures: reject a loop whose relative heading differs from the chain's estimate by "
-        "more than this many degrees (corridors look alike after a half turn, square rooms after a quarter turn; "
-        "180: off); docs/design/scan-matching.md, third part",
-    )
-    # ---- KISS-ICP
-    kiss_voxel: float | None = Field(
-        default=None, gt=0, description="KISS-ICP voxel size (sequence unit); None: from data"
-    )
-    kiss_voxel_spacing: float = Field(
-        default=6.5, gt=0, le=1000, description="KISS voxel = this * median point spacing when not given"
-    )
-    kiss_reference_scale: float = Field(
-        default=10.0,
-        gt=0,
-        description="KISS runs on points rescaled so that the data's scale equals this many units "
-        "(its robust kernel is not unit-free; 10: a LiDAR's median range in metres, as KISS is tuned)",
-    )
-    kiss_max_points_per_voxel: int = Field(default=20, ge=1, le=1000, description="KISS map points per voxel")
-    kiss_initial_threshold: float = Field(
-        default=2.0, gt=0, le=100, description="KISS adaptive threshold before motion is seen, in voxels"
-    )
-    kiss_min_motion: float = Field(
-        default=0.1, ge=0, le=100, description="KISS: motions below this many voxels do not update the threshold"
-    )
-    kiss_prior: Literal["auto", "velocity", "init"] = Field(
-        default="auto",
-        description="KISS motion prediction: its constant-velocity model, the initial guess's relative "
-        "motion, or auto (the guess when it moves, else constant velocity)",
-    )
-    # ---- all
-    event_interval: int = Field(default=10, ge=1, description="emit an iteration event every N frames")
-    threads: int = Field(
-        default=1, ge=1, le=256, description="CPU threads for Open3D and KISS-ICP (1: bit-for-bit repeatable)"
-    )
-
-    @field_validator("icp_yaw_axis")
-    @classmethod
-    def _axis_nonzero(cls, v: tuple[float, float, float] | None) -> tuple[float, float, float] | None:
-        if v is not None and sum(c * c for c in v) < 1e-12:
-            raise ValueError("icp_yaw_axis must be a nonzero vector")
-        return v
 
 
 # ---- learned methods (strep, strep-nolink, deepmapping) ------------------------------------
@@ -312,11 +91,11 @@ class LossConfig(Section):
         "(docs/design/warm-start.md, weak directions)",
     )
     window: int = Field(default=2, ge=1, le=64, description="Chamfer to neighbours within +-window frames")
-    loop_radius: float | None = Field(
+    loop_radius_fraction: float | None = Field(
         default=0.5,
         gt=0,
         description="also Chamfer to frames farther apart in time whose sensors are closer than this "
-        "(x scale) in the current estimate; None: temporal neighbours only",
+        "fraction of the scale in the current estimate; None: temporal neighbours only",
     )
     loop_neighbours: int = Field(default=8, ge=1, le=64, description="spatial neighbours per frame at most")
     loop_after: float = Field(
@@ -362,6 +141,11 @@ class LossConfig(Section):
         le=100_000,
         description="first N iterations: the occupancy MLP learns the map, poses get no gradient from it",
     )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _migrate(cls, data: Any) -> Any:
+        return migrate_section("loss", data)
 
 
 class OptimConfig(Section):

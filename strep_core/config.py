@@ -13,9 +13,18 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field, ValidationError, model_validator
 
+from strep_core._config_classical import (
+    ClassicalConfig,
+    CorrelativeConfig,
+    IcpConfig,
+    KissConfig,
+    NormalsConfig,
+    PoseGraphConfig,
+    ScanMatchConfig,
+)
+from strep_core._config_migrate import RENAMED, migrate
 from strep_core._config_sections import (
     MAX_POINTS,
-    ClassicalConfig,
     DataConfig,
     LossConfig,
     ModelConfig,
@@ -28,16 +37,23 @@ from strep_core.errors import ConfigError
 __all__ = [
     "CLASSICAL_INITS",
     "MAX_POINTS",
+    "RENAMED",
     "SCRATCH_PROFILE",
     "ClassicalConfig",
+    "CorrelativeConfig",
     "DataConfig",
     "DeviceName",
+    "IcpConfig",
     "InitName",
+    "KissConfig",
     "LossConfig",
     "ModelConfig",
+    "NormalsConfig",
     "OptimConfig",
+    "PoseGraphConfig",
     "ProfileName",
     "RunConfig",
+    "ScanMatchConfig",
     "Section",
     "StartName",
     "Width",
@@ -60,7 +76,7 @@ SCRATCH_PROFILE: dict[str, dict[str, Any]] = {
     # window / span) close it: v1_pose0 1.75 -> 0.47 px (docs/design/from-scratch.md)
     "loss": {
         "robust": "huber",
-        "loop_radius": 0.5,
+        "loop_radius_fraction": 0.5,
         "loop_after": 0.5,
         "loop_robust": "truncated",
         "loop_weight": "span",
@@ -69,11 +85,21 @@ SCRATCH_PROFILE: dict[str, dict[str, Any]] = {
 }
 
 
+def merge(under: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """``over``'s values over ``under``'s, nested sections merged key by key."""
+    out = dict(under)
+    for key, value in over.items():
+        below = out.get(key)
+        out[key] = merge(below, value) if isinstance(below, dict) and isinstance(value, dict) else value
+    return out
+
+
 def _overlay(given: Any, profile: dict[str, Any]) -> dict[str, Any]:
-    """``profile`` under the values of ``given`` (a dict or a section model: its set fields)."""
+    """``profile`` under the values of ``given`` (a dict or a section model: its set fields,
+    nested sections included)."""
     if isinstance(given, BaseModel):
         given = given.model_dump(exclude_unset=True)
-    return {**profile, **(given or {})}
+    return merge(profile, given or {})
 
 
 def _under(given: Any, section: type[BaseModel], profile: dict[str, Any]) -> Any:
@@ -137,6 +163,7 @@ class RunConfig(Section):
     def _resolve_start(cls, data: Any) -> Any:
         if not isinstance(data, dict):
             return data
+        data = migrate(data)  # old keys first: the profiles below see the new names only
         start, init = data.get("start", "auto"), data.get("init", "auto")
         if start == "auto":
             start = "scratch" if init == "identity" else "pose-graph"

@@ -234,14 +234,14 @@ def _optimize(
         clock.lap("events")  # (time since the last lap: the previous event, if any)
         for grp, lr in zip(optimizer.param_groups, base_lrs, strict=True):
             grp["lr"] = lr * lr_factor(it)
-        loops_on = lc.loop_radius is not None and it >= lc.loop_after * total
+        loops_on = lc.loop_radius_fraction is not None and it >= lc.loop_after * total
         if loops_on and (it % oc.pair_interval == 0 or not pairs_found):
             pairs_found = True
             pairs_all = losses.frame_pairs(
                 k,
                 0,
                 positions=current[:, :d, d].detach().cpu().numpy(),
-                radius=lc.loop_radius,
+                radius=lc.loop_radius_fraction,
                 max_per_frame=lc.loop_neighbours,
             )
         frames_np = with_partners(schedule[it % len(schedule)], pairs_all)

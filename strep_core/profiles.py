@@ -13,7 +13,7 @@ Profiles (values in `PROFILES`; measurements in ``docs/design/profiles.md``):
   scale, turns up to 80 degrees): the global scan matcher on every consecutive pair
   (`strep_core.scanmatch`), and it also proposes and verifies the pose graph's loop closures;
   each pair starts from the previous pair's motion, and along a corridor (a direction the matched
-  normals barely constrain) the translation stays at that guess (``icp_degeneracy``); the learned
+  normals barely constrain) the translation stays at that guess (``icp.degeneracy``); the learned
   methods' corrections along such directions are penalised (``loss.weak_weight``).
 * ``laser-dense``: planar scans a small step apart (DeepMapping's v1_pose0, the simulated 2D
   lidar): plain coarse-to-fine ICP; the global matcher costs 4x and changes nothing there.
@@ -40,6 +40,7 @@ vertical axis is known and the largest turn reaches `TURNING_TURN` degrees, else
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -51,25 +52,25 @@ from strep_core.sequence import Sequence
 PROFILES: dict[str, dict[str, dict[str, Any]]] = {
     "laser-keyframes": {
         "classical": {
-            "icp_global": "on",
-            "loop_global": "on",
-            "icp_motion_prior": "velocity",
-            "icp_degeneracy": 0.05,
-            "icp_global_yaw_window": 120.0,
+            "scanmatch": {"consecutive": "on", "yaw_window": 120.0},
+            "posegraph": {"loop_global": "on"},
+            "icp": {"motion_prior": "velocity", "degeneracy": 0.05},
         },
         # hold corrections along corridor axes: belgioioso[300:400] 0.337 -> 0.131 m (docs/design/warm-start.md)
         "loss": {"weak_weight": 0.1},
     },
-    "laser-dense": {"classical": {"icp_global": "off", "loop_global": "off"}},
+    "laser-dense": {"classical": {"scanmatch": {"consecutive": "off"}, "posegraph": {"loop_global": "off"}}},
     "depth-turning": {
         "classical": {
-            "icp_yaw_search": 30.0,
-            "icp_yaw_step": 30.0,
-            "icp_yaw_axis": (0.0, -1.0, 0.0),  # replaced by the sensor's own vertical axis when known
-            "icp_scales": [1.0, 0.5, 0.25],
-            "icp_degeneracy": 0.05,
-            "icp_kernel": 1.0,  # Tukey at each stage's distance: pose graph 0.352 -> 0.199 m (profiles.md)
-            "local_map_frames": 1,
+            "icp": {
+                "yaw_search": 30.0,
+                "yaw_step": 30.0,
+                "yaw_axis": (0.0, -1.0, 0.0),  # replaced by the sensor's own vertical axis when known
+                "scales": [1.0, 0.5, 0.25],
+                "degeneracy": 0.05,
+                "kernel": 1.0,  # Tukey at each stage's distance: pose graph 0.352 -> 0.199 m (profiles.md)
+                "local_map_frames": 1,
+            }
         }
     },
     "depth-handheld": {"classical": {}},
@@ -214,14 +215,16 @@ def overlay(name: str, seq: Sequence | None = None, *, scratch: bool = False) ->
     """The overlay of profile ``name`` per section (with its `SCRATCH_OVERLAYS` part when
     ``scratch``); ``depth-turning`` turns about the sensor's own vertical axis when ``seq``
     records one."""
-    out = {section: dict(values) for section, values in PROFILES[name].items()}
+    from strep_core.config import merge
+
+    out = copy.deepcopy(PROFILES[name])
     if scratch:
         for section, values in SCRATCH_OVERLAYS.get(name, {}).items():
-            out[section] = {**out.get(section, {}), **values}
+            out[section] = merge(out.get(section, {}), values)
     if name == "depth-turning" and seq is not None:
         axis = sensor_of(seq).get("vertical_axis")
         if axis is not None:
-            out["classical"]["icp_yaw_axis"] = tuple(float(c) for c in axis)
+            out["classical"]["icp"]["yaw_axis"] = tuple(float(c) for c in axis)
             if "planar_axis" in out.get("model", {}):
                 out["model"]["planar_axis"] = [float(c) for c in axis]
     return out
@@ -231,7 +234,7 @@ def resolve(config: Any, seq: Sequence) -> Any:
     """``config`` (a `RunConfig`) with its profile applied: the probe's choice when ``profile`` is
     ``"auto"``, else the named one; fields the config set keep their values. The returned config
     names the profile and why (``profile_reason``)."""
-    from strep_core.config import _overlay
+    from strep_core.config import _overlay, merge
 
     if config.profile == "auto":
         try:
@@ -246,5 +249,5 @@ def resolve(config: Any, seq: Sequence) -> Any:
     for section, values in overlay(name, seq, scratch=config.start == "scratch").items():
         current = getattr(config, section)
         # the profile's values over the defaults (and over SCRATCH_PROFILE's), under the fields given
-        update[section] = type(current).model_validate({**current.model_dump(), **_overlay(current, values)})
+        update[section] = type(current).model_validate(merge(current.model_dump(), _overlay(current, values)))
     return config.model_copy(update=update)

@@ -1,8 +1,8 @@
 """One run's state, rebuilt from its events by one reducer: ``apply(state, event) -> state``.
 
 Every view draws from a `RunState` instead of interpreting events itself: the viser viewer
-(``app.viewer``), the Rerun recorder (``app.rrd``) and, by the same rules, the page
-(``static/app.js``). How each event kind changes the state is written once, in `REDUCERS`,
+(``app.viewer``), the Rerun recorder (``app.rrd``) and the page (``static/app.js``, by the rules
+of `PAGE_RULES`, served to it). How each event kind changes the state is written once, in `REDUCERS`,
 keyed by the kinds of `strep_core.events.Event`; an event of any other kind is counted and
 otherwise ignored (never taken for an iteration). Adding a kind: docs/design/extending.md.
 
@@ -230,6 +230,33 @@ REDUCERS: dict[str, Callable[[RunState, Any], Step]] = {
     "stage": _stage,
     "iteration": _iteration,
     "result": _result,
+}
+
+
+#: What the web page keeps of each kind, as data: ``static/app.js`` fetches these rules
+#: (``GET /api/events/rules``) and applies them to a job's entry, so the page holds no table of
+#: its own. Each rule, in order: ``set`` an entry field ``from`` an event field (a dotted path)
+#: or to a ``value``; or ``push`` the values ``from`` several paths onto an entry list (skipped
+#: when one is null); ``skip_null`` skips a null value, ``if`` requires fields to equal values.
+#: A kind without rules changes nothing on the page; `tests/test_runstate.py` checks the paths
+#: against the event classes and the page's figures against `apply`.
+PAGE_RULES: dict[str, list[dict[str, Any]]] = {
+    "start": [
+        {"set": "started", "value": True},
+        {"set": "total", "from": "total_iterations"},
+        {"set": "unit", "from": "unit"},
+    ],
+    "stage": [{"set": "stage", "from": "stage"}],
+    "iteration": [
+        {"set": "iteration", "from": "iteration"},
+        {"set": "total", "from": "total"},
+        {"set": "elapsed", "from": "elapsed"},
+        {"push": "loss", "from": ["iteration", "losses.total"]},
+        {"push": "ate", "from": ["iteration", "ate"]},
+        {"set": "lastAte", "from": "ate", "skip_null": True},
+        {"set": "startAte", "from": "ate", "if": {"iteration": 0}},
+    ],
+    "result": [{"set": "metrics", "from": "metrics"}],
 }
 
 

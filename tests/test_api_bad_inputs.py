@@ -750,9 +750,10 @@ CASES: list[Bad] = [
         "POST",
         "/api/jobs",
         422,
-        "classical.max_correspondence: Input should be a finite number",
+        "classical.icp.max_correspondence: Input should be a finite number",
         {
-            "content": b'{"sequence_id": "$SEQ", "method": "icp", "classical": {"max_correspondence": Infinity}}',
+            "content": b'{"sequence_id": "$SEQ", "method": "icp", '
+            b'"classical": {"icp": {"max_correspondence": Infinity}}}',
             "headers": {"Content-Type": "application/json"},
         },
     ),

@@ -237,10 +237,10 @@ def intel_window(shared_data) -> Sequence:
 def test_icp_registers_a_carmen_window_from_identity_with_yaw_search(intel_window) -> None:
     """Measured, without the global scan match: 8.5 m ATE without yaw search, 0.99 m with it,
     0.43 m with the velocity prior too; the defaults (global scan match on 2D data): 0.28 m."""
-    local = {"icp_global": "off"}
+    local = {"scanmatch": {"consecutive": "off"}}
     plain = run(intel_window, RunConfig.model_validate({"method": "icp", "classical": local}))
     keyframes = RunConfig.model_validate(
-        {"method": "icp", "classical": {**local, "icp_yaw_search": 30, "icp_motion_prior": "velocity"}}
+        {"method": "icp", "classical": {**local, "icp": {"yaw_search": 30, "motion_prior": "velocity"}}}
     )
     searched = run(intel_window, keyframes)
     assert plain.metrics["initial_ate"] > 10.0
@@ -307,10 +307,11 @@ def test_icp_reports_when_it_keeps_its_guess() -> None:
 
 def test_yaw_axis_must_be_a_direction() -> None:
     with pytest.raises(ValueError, match="nonzero"):
-        ClassicalConfig(icp_yaw_axis=(0.0, 0.0, 0.0))
-    params = reg.resolve_params(_sim3d_sequence(), ClassicalConfig(icp_yaw_axis=(0.0, -2.0, 0.0), icp_yaw_search=30))
+        ClassicalConfig(icp={"yaw_axis": (0.0, 0.0, 0.0)})
+    turned = ClassicalConfig(icp={"yaw_axis": (0.0, -2.0, 0.0), "yaw_search": 30})
+    params = reg.resolve_params(_sim3d_sequence(), turned)
     assert params.yaw_axis == (0.0, -1.0, 0.0) and len(params.yaw_search) == 6
-    assert reg.resolve_params(_sim3d_sequence(), ClassicalConfig(icp_yaw_search=30)).yaw_search == ()
+    assert reg.resolve_params(_sim3d_sequence(), ClassicalConfig(icp={"yaw_search": 30})).yaw_search == ()
 
 
 def _sim3d_sequence() -> Sequence:
@@ -367,8 +368,8 @@ def test_correlative_start_fixes_the_intel_window_that_yaw_search_misses(shared_
     seq = dataclasses.replace(
         read_carmen(shared_data / "carmen" / "intel-corrected.log.gz", frames="300:400"), initial_poses=None
     )
-    carmen = {"icp_yaw_search": 30.0, "icp_motion_prior": "velocity", "icp_correlative": 4.5, "icp_global": "off"}
-    without = {k: v for k, v in carmen.items() if k != "icp_correlative"}
+    without = {"icp": {"yaw_search": 30.0, "motion_prior": "velocity"}, "scanmatch": {"consecutive": "off"}}
+    carmen = {**without, "correlative": {"window": 4.5}}
     plain = run(seq, RunConfig.model_validate({"method": "icp", "profile": "none", "classical": without}))
     searched = run(seq, RunConfig.model_validate({"method": "icp", "profile": "none", "classical": carmen}))
     assert plain.metrics["ate"] > 1.5, plain.metrics["ate"]

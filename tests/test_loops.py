@@ -28,7 +28,7 @@ def _closures(chain_turn_deg: float, max_turn_deg: float) -> tuple[list[reg.Loop
     truth = g.se2_from_xytheta(np.array([[0.0, 0.0, 0.0], [0.3, 0.1, np.radians(10.0)]]))
     frames = [g.apply(g.inverse(p), _room(rng)) for p in truth]
     seq = Sequence(frames=frames, poses=truth)
-    params = reg.resolve_params(seq, ClassicalConfig(icp_global="on"))
+    params = reg.resolve_params(seq, ClassicalConfig(scanmatch={"consecutive": "on"}))
     clouds = reg.prepare_frames(seq, params)
     chain = truth.copy()
     chain[1] = truth[1] @ g.se2_from_xytheta(np.array([[0.0, 0.0, np.radians(chain_turn_deg)]]))[0]
@@ -54,7 +54,7 @@ def _yaw_and_shift(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
 
 def test_loop_that_agrees_with_the_chain_is_accepted() -> None:
     """The chain's heading is 20 degrees off: within the default 45, the loop enters and is right."""
-    default = ClassicalConfig().loop_global_turn
+    default = ClassicalConfig().posegraph.loop_global_turn
     found, truth = _closures(20.0, default)
     assert len(found) == 1
     yaw_err, t_err = _yaw_and_shift(truth, reg.from_se3(found[0].transformation[None], 2)[0])
@@ -68,5 +68,5 @@ def test_loop_that_turns_the_chain_by_a_half_turn_is_rejected() -> None:
     found_off, truth = _closures(180.0, 180.0)
     assert len(found_off) == 1
     assert _yaw_and_shift(truth, reg.from_se3(found_off[0].transformation[None], 2)[0])[0] < 1.0
-    found_on, _ = _closures(180.0, ClassicalConfig().loop_global_turn)
+    found_on, _ = _closures(180.0, ClassicalConfig().posegraph.loop_global_turn)
     assert found_on == []

@@ -39,8 +39,8 @@ def test_the_probe_picks_the_turning_camera_profile_for_a_simulated_walk() -> No
     assert max(found.measures["turn_deg"]) >= 25  # the walk turns by 30 degrees in place
     cfg = profiles.resolve(RunConfig(method="icp"), seq)
     assert cfg.profile == "depth-turning" and cfg.profile_reason.startswith("probe: ")
-    assert cfg.classical.icp_yaw_axis == (0.0, -1.0, 0.0)  # the camera's own vertical axis (OpenCV)
-    assert cfg.classical.icp_yaw_search == 30.0 and cfg.classical.local_map_frames == 1
+    assert cfg.classical.icp.yaw_axis == (0.0, -1.0, 0.0)  # the camera's own vertical axis (OpenCV)
+    assert cfg.classical.icp.yaw_search == 30.0 and cfg.classical.icp.local_map_frames == 1
 
 
 def test_the_probe_picks_the_dense_laser_profile_for_a_simulated_2d_lidar() -> None:
@@ -52,11 +52,14 @@ def test_the_probe_picks_the_dense_laser_profile_for_a_simulated_2d_lidar() -> N
 
 
 def test_a_named_profile_skips_the_probe_and_given_fields_keep_their_values(intel) -> None:
-    cfg = RunConfig.model_validate({"method": "icp", "profile": "depth-turning", "classical": {"icp_yaw_search": 10.0}})
+    cfg = RunConfig.model_validate(
+        {"method": "icp", "profile": "depth-turning", "classical": {"icp": {"yaw_search": 10.0}}}
+    )
     out = profiles.resolve(cfg, intel)
     assert out.profile == "depth-turning" and out.profile_reason == "given"
-    assert out.classical.icp_yaw_search == 10.0  # given: kept
-    assert out.classical.icp_yaw_step == 30.0  # left out: the profile's
+    assert out.classical.icp.yaw_search == 10.0  # given: kept
+    assert out.classical.icp.yaw_step == 30.0  # left out: the profile's
+    assert out.classical.icp.scales == [1.0, 0.5, 0.25]  # a field beside a given one in its sub-section
     plain = profiles.resolve(RunConfig(method="icp", profile="none"), intel)
     assert plain.classical == RunConfig().classical
     with pytest.raises(ConfigError):
@@ -121,7 +124,7 @@ def test_strep_run_takes_a_profile_and_config_json_records_it(tmp_path: Path) ->
     assert main([*argv, "--profile", "laser-keyframes"]) == 0
     saved = json.loads((out / "config.json").read_text())
     assert saved["profile"] == "laser-keyframes" and saved["profile_reason"] == "given"
-    assert saved["classical"]["icp_global"] == "on" and saved["frames"] == "0:8"
+    assert saved["classical"]["scanmatch"]["consecutive"] == "on" and saved["frames"] == "0:8"
     assert json.loads((out / "metrics.json").read_text())["profile"] == "laser-keyframes"
     assert main([*argv]) == 0  # auto: the probe chooses and says why
     saved = json.loads((out / "config.json").read_text())

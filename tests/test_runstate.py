@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from strep_core.config import RunConfig
-from strep_core.events import PROGRESS_KINDS, ListSink, ResultEvent, StageEvent, progress_events
+from strep_core.events import PROGRESS_KINDS, Event, ListSink, ResultEvent, StageEvent, progress_events
 from strep_core.runner import load_input, run
-from strep_core.runstate import REDUCERS, History, RunState, apply
+from strep_core.runstate import PAGE_RULES, REDUCERS, History, RunState, apply
 
 
 @pytest.fixture(scope="module")
@@ -40,6 +40,59 @@ def _reduce(events, **kw) -> tuple[RunState, list[RunState]]:
 
 def test_every_event_kind_has_one_reducer() -> None:
     assert set(REDUCERS) == PROGRESS_KINDS == {"start", "stage", "iteration", "result"}
+
+
+def _page_entry(events: list) -> dict:
+    """The page's entry of a job after ``events`` (as JSON, as the stream carries them), by the rules
+    of `PAGE_RULES`: the same interpreter as ``applyRules`` in static/app.js."""
+
+    def pick(ev: dict, path: str):
+        for key in path.split("."):
+            ev = None if ev is None else ev.get(key)
+        return ev
+
+    entry: dict = {"loss": [], "ate": []}
+    for event in events:
+        ev = event.model_dump(mode="json")
+        for r in PAGE_RULES.get(ev["kind"], []):
+            if any(pick(ev, path) != want for path, want in r.get("if", {}).items()):
+                continue
+            value = (
+                r["value"]
+                if "value" in r
+                else [pick(ev, p) for p in r["from"]]
+                if r.get("push")
+                else pick(ev, r["from"])
+            )
+            if r.get("push"):
+                if all(v is not None for v in value):
+                    entry[r["push"]].append(value)
+            elif not (r.get("skip_null") and value is None):
+                entry[r["set"]] = value
+    return entry
+
+
+def test_the_page_rules_name_event_fields_and_agree_with_the_reducer(strep_events) -> None:
+    """The page's rules (served to static/app.js) read fields the events have, and give the
+    figures `apply` gives: the planned and done iterations, start ATE, curves and metrics."""
+    classes = {cls.model_fields["kind"].default: cls for cls in Event.__args__[0].__args__}
+    assert set(PAGE_RULES) <= set(REDUCERS)
+    for kind, rules in PAGE_RULES.items():
+        for r in rules:
+            paths = r.get("from", [])
+            for path in [*([paths] if isinstance(paths, str) else paths), *r.get("if", {})]:
+                assert path.split(".")[0] in classes[kind].model_fields, (kind, path)
+    entry = _page_entry(strep_events)
+    state, _ = _reduce(strep_events)
+    assert entry["started"] and (entry["total"], entry["iteration"]) == (state.total, state.iteration) == (12, 12)
+    assert entry["startAte"] == state.start_ate and entry["metrics"] == state.metrics
+    xs, ys = state.history.curves()["loss/total"]
+    assert entry["loss"] == [[int(x), y] for x, y in zip(xs, ys, strict=True)]
+    xs, ys = state.history.curves()["ate"]
+    assert [it for it, _ in entry["ate"]] == list(xs)
+    # the last snapshot's ATE is the result's (the final pass), the page keeps the last event's
+    assert [a for _, a in entry["ate"]][:-1] == list(ys[:-1]) and entry["ate"][-1][1] == pytest.approx(ys[-1], rel=1e-2)
+    assert entry["lastAte"] == entry["ate"][-1][1] and entry["stage"] == "init:multiway"
 
 
 def test_a_strep_run_reduces_to_its_result(strep_events) -> None:

@@ -91,5 +91,5 @@ def test_icp_uses_the_global_match_on_2d_data_only(shared_data) -> None:
     truth = g.relative(seq.poses[0], seq.poses[1])
     yaw_err, t_err = _errors(truth, found)
     assert yaw_err <= 1.0 and t_err <= 0.05, (yaw_err, t_err)
-    off = reg.resolve_params(seq, ClassicalConfig(icp_global="off"))
+    off = reg.resolve_params(seq, ClassicalConfig(scanmatch={"consecutive": "off"}))
     assert off.global_match is None

@@ -43,7 +43,7 @@ def test_scratch_profile_fills_only_what_is_left_out() -> None:
     cfg = RunConfig.build(init="identity", loss={"robust": "truncated"})
     assert cfg.start == "scratch"  # auto + identity
     assert cfg.loss.robust == "truncated"  # given
-    assert cfg.loss.loop_radius == SCRATCH_PROFILE["loss"]["loop_radius"]  # left out
+    assert cfg.loss.loop_radius_fraction == SCRATCH_PROFILE["loss"]["loop_radius_fraction"]  # left out
     assert cfg.model.link_init == SCRATCH_PROFILE["model"]["link_init"]
     again = RunConfig.model_validate_json(cfg.model_dump_json())
     assert again == cfg  # a saved config reproduces its run

@@ -1,4 +1,4 @@
-"""The global match's step prior after turns in place (`icp_global_prior_stop`,
+"""The global match's step prior after turns in place (`scanmatch.prior_stop`,
 docs/design/scan-matching.md, fourth part)."""
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ def test_corridor_pair_after_turns_in_place_keeps_the_step() -> None:
     seq = Sequence(frames=[target, source], poses=np.stack([np.eye(3), truth]))
     cfg = ClassicalConfig(**overlay("laser-keyframes")["classical"])
     params = reg.resolve_params(seq, cfg)
-    stop = cfg.icp_global_prior_stop * seq.scale()
+    stop = cfg.scanmatch.prior_stop * seq.scale()
     assert 0.03 < stop < 0.96  # the turns in place are stops, the 1 m steps are not
     clouds = reg.prepare_frames(seq, params)
     steps = {}

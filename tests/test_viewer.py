@@ -10,8 +10,9 @@ import urllib.request
 import numpy as np
 import pytest
 
+from app.core.config import Settings, ViewerSettings
 from app.viewer import ViewerServer
-from app.viewer.chart import CHART_INTERVAL, loss_exponent
+from app.viewer.chart import loss_exponent
 from app.viewer.scene import display_anchor, poses_to_matrices, rotations_to_wxyz
 from strep_core import geometry as g
 from strep_core.config import RunConfig
@@ -20,6 +21,7 @@ from strep_core.runner import load_input, run
 from strep_core.runstate import History, Snapshot, stage_line
 
 MAX_POINTS = 8_000
+CHART_INTERVAL = ViewerSettings().chart_interval
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +31,7 @@ def seq():
 
 @pytest.fixture(scope="module")
 def viewer():
-    v = ViewerServer(port=0, max_points_per_job=MAX_POINTS, max_rate_hz=10.0)
+    v = ViewerServer(port=0, settings=ViewerSettings(max_points_per_job=MAX_POINTS, max_rate_hz=10.0))
     yield v
     v.close()
 
@@ -128,7 +130,7 @@ def test_throttle_keeps_the_latest_state(viewer, seq) -> None:
     pushes = viewer.jobs()["burst"]["pushes"] - before
     assert 1 <= pushes <= elapsed / viewer.interval + 2
     # the history is bounded (300 + 100 snapshots kept within the limit)
-    assert viewer.jobs()["burst"]["history"] <= viewer.history_limit
+    assert viewer.jobs()["burst"]["history"] <= viewer.settings.history_limit
 
 
 def test_comparison_side_by_side_and_replay(viewer, seq, icp_events) -> None:
@@ -305,6 +307,26 @@ def test_close_frees_the_port(seq) -> None:
         again.close()
 
 
+def test_viewer_settings_are_one_section_of_the_service_settings(monkeypatch) -> None:
+    """The viewer's limits come from the service's ``viewer`` section (env ``STREP_VIEWER__*``);
+    the defaults are the viewer's former constructor defaults."""
+    defaults = ViewerSettings()
+    assert (defaults.max_points_per_job, defaults.max_rate_hz, defaults.history_limit) == (30_000, 10.0, 256)
+    assert (defaults.max_pose_markers, defaults.frame_nodes_max, defaults.max_jobs) == (64, 512, 32)
+    assert defaults.chart_interval == 0.5
+    monkeypatch.setenv("STREP_VIEWER__MAX_JOBS", "3")
+    monkeypatch.setenv("STREP_VIEWER__MAX_RATE_HZ", "4")
+    settings = Settings().viewer
+    assert settings.max_jobs == 3 and settings.max_rate_hz == 4.0 and settings.history_limit == 256
+    with pytest.raises(ValueError, match="greater than 0"):
+        ViewerSettings(max_rate_hz=0)
+    v = ViewerServer(port=0, settings=settings)
+    try:
+        assert v.settings.max_jobs == 3 and v.interval == 0.25  # pushes at most 4 per second per job
+    finally:
+        v.close()
+
+
 def test_3d_poses_are_drawn_in_the_ground_truth_frame(viewer) -> None:
     room = load_input("sample:sim3d-room")
     gt = g.pose_to_vector(room.poses)
@@ -355,7 +377,7 @@ def test_chart_draws_chamfer_sized_losses_in_a_power_of_ten(viewer, seq) -> None
         )
     )  # fmt: skip
     for i in range(1, 4):
-        time.sleep(CHART_INTERVAL if i == 3 else 0.0)  # the chart is redrawn at most every CHART_INTERVAL
+        time.sleep(CHART_INTERVAL if i == 3 else 0.0)  # the chart is redrawn at most every chart_interval
         sink.emit(
             IterationEvent(
                 iteration=i, total=3, elapsed=0.1 * i, losses={"total": 4e-4 / i, "chamfer": 3e-4 / i},

@@ -14,7 +14,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import Field, SecretStr, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 MiB = 1024**2
@@ -46,10 +46,36 @@ def _split_list(value: Any) -> Any:
     return value
 
 
-class Settings(BaseSettings):
-    """Settings of the STREP Studio service (environment prefix ``STREP_``)."""
+class ViewerSettings(BaseModel):
+    """The live 3D viewer's settings (`app.viewer.ViewerServer`), the ``viewer`` section of `Settings`:
+    ``STREP_VIEWER__MAX_RATE_HZ=5`` or ``STREP_VIEWER='{"max_rate_hz": 5}'``. Its port stays
+    ``viewer_port`` (``STREP_VIEWER_PORT``), beside the service's own host and port."""
 
-    model_config = SettingsConfigDict(env_prefix="STREP_", extra="ignore", validate_default=True)
+    model_config = ConfigDict(extra="forbid")
+
+    max_points_per_job: int = Field(default=30_000, ge=1, description="points drawn per job (frames evenly strided)")
+    max_rate_hz: float = Field(default=10.0, gt=0, description="pushes per second per job, at most")
+    history_limit: int = Field(default=256, ge=2, description="snapshots kept per job for replay (then decimated 2:1)")
+    max_pose_markers: int = Field(default=64, ge=1, description="pose axes drawn per job")
+    frame_nodes_max: int = Field(
+        default=512,
+        ge=0,
+        description="up to this many frames, each frame is its own cloud moved by its pose (a push sends K "
+        "poses); above, one fused cloud is re-sent per push",
+    )
+    max_jobs: int = Field(default=32, ge=1, description="jobs kept; beyond, the oldest finished ones are removed")
+    chart_interval: float = Field(
+        default=0.5, ge=0, description="seconds between chart updates of a job (its text follows every push)"
+    )
+
+
+class Settings(BaseSettings):
+    """Settings of the STREP Studio service (environment prefix ``STREP_``; nested sections with
+    ``__``, e.g. ``STREP_VIEWER__MAX_JOBS``)."""
+
+    model_config = SettingsConfigDict(
+        env_prefix="STREP_", env_nested_delimiter="__", extra="ignore", validate_default=True
+    )
 
     data_dir: Path = Field(default=Path("strep-data"), description="SQLite store, uploads and job results")
     host: str = Field(default="127.0.0.1", description="bind address; a non-loopback one needs api_token")
@@ -94,6 +120,7 @@ class Settings(BaseSettings):
         le=65535,
         description="port of the 3D viewer; when taken, the next free one (see /api/health); 0: any free port",
     )
+    viewer: ViewerSettings = Field(default_factory=ViewerSettings, description="the live 3D viewer")
     cancel_grace_seconds: float = Field(
         default=5.0, gt=0, le=600, description="after a cancel, a worker still running this long is terminated"
     )

@@ -99,7 +99,9 @@ class Service:
                 refused = local.refusal(client, headers)
                 return None if refused is None else refused.detail
 
-        self.viewer = ViewerServer(host=self.settings.host, port=self.settings.viewer_port, admit=admit)
+        self.viewer = ViewerServer(
+            host=self.settings.host, port=self.settings.viewer_port, settings=self.settings.viewer, admit=admit
+        )
         self.live = LiveFeed(self.viewer, self.store, self.loader)
         self.live.start()
         self.broadcaster.listen(self.live.publish)

@@ -13,7 +13,6 @@ import viser
 
 from app.viewer.panel import Job
 
-CHART_INTERVAL = 0.5  # seconds between chart updates of a job (its text follows every push)
 CURVE_COLORS = ["#e6502a", "#2878e6", "#28aa5a", "#aa46c8", "#dcaa1e", "#555555"]
 
 

@@ -16,9 +16,10 @@ from typing import Any
 
 import viser
 
+from app.core.config import ViewerSettings
 from app.viewer import panel
 from app.viewer.camera import frame_camera
-from app.viewer.chart import CHART_INTERVAL, update_chart
+from app.viewer.chart import update_chart
 from app.viewer.controls import Controls
 from app.viewer.panel import Job
 from app.viewer.scene import layout_panels
@@ -32,9 +33,8 @@ class Pusher:
 
     server: viser.ViserServer
     gui: Controls
+    settings: ViewerSettings
     interval: float
-    max_pose_markers: int
-    frame_nodes_max: int
     stats: Any
     _lock: threading.RLock
     _wake: threading.Condition
@@ -187,7 +187,7 @@ class Pusher:
             visible=job.group == self._selected,
             point_scale=self._point_scale,
             show_gt=self._show_gt,
-            frame_nodes_max=self.frame_nodes_max,
+            frame_nodes_max=self.settings.frame_nodes_max,
         )
         with self._lock:
             self._layout_dirty.add(job.group)
@@ -221,11 +221,12 @@ class Pusher:
             frame_camera(self.server, self._members(selected), clients=ui["frame_clients"])
 
     def _push(self, job: Job, snap: Snapshot | None) -> None:
-        if snap is not None and panel.draw(job, snap, max_pose_markers=self.max_pose_markers):
+        if snap is not None and panel.draw(job, snap, max_pose_markers=self.settings.max_pose_markers):
             with self._lock:
                 self._layout_dirty.add(job.group)
         panel.update_text(job, snap)
         now = time.monotonic()
-        if now - job.chart_pushed >= CHART_INTERVAL or job.state.finished or snap is not job.state.history.latest:
+        due = now - job.chart_pushed >= self.settings.chart_interval
+        if due or job.state.finished or snap is not job.state.history.latest:
             job.chart_pushed = now
             update_chart(self.server.gui, job, self._lock)

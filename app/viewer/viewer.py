@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 import viser
 
+from app.core.config import ViewerSettings
 from app.viewer.controls import Controls
 from app.viewer.panel import Job
 from app.viewer.pusher import Pusher
@@ -76,13 +77,8 @@ class ViewerServer(Pusher):
         host: interface to bind; loopback by default (viser itself defaults to 0.0.0.0).
         port: port to try first; viser moves on to the next free one (see `port`). 0 picks
             a free ephemeral port.
-        max_points_per_job: points drawn per job (frames evenly strided).
-        max_rate_hz: pushes per second per job, at most.
-        history_limit: snapshots kept per job for replay (then decimated 2:1).
-        max_pose_markers: pose axes drawn per job.
-        frame_nodes_max: up to this many frames, each frame is its own cloud moved by its
-            pose (a push sends K poses); above, one fused cloud is re-sent per push.
-        max_jobs: jobs kept; beyond, the oldest finished ones are removed.
+        settings: the viewer's limits and rates (`app.core.config.ViewerSettings`, the service
+            settings' ``viewer`` section); None: the defaults.
         verbose: let viser print its banner.
         admit: given a websocket client's address and handshake headers (lower-case names),
             why it is refused, or None to let it in; a refused client is closed (1008) before
@@ -94,23 +90,12 @@ class ViewerServer(Pusher):
         host: str = "127.0.0.1",
         port: int = 8080,
         *,
-        max_points_per_job: int = 30_000,
-        max_rate_hz: float = 10.0,
-        history_limit: int = 256,
-        max_pose_markers: int = 64,
-        frame_nodes_max: int = 512,
-        max_jobs: int = 32,
+        settings: ViewerSettings | None = None,
         verbose: bool = False,
         admit: Callable[[str | None, Mapping[str, str]], str | None] | None = None,
     ) -> None:
-        if max_rate_hz <= 0:
-            raise ValueError("max_rate_hz must be positive")
-        self.max_points_per_job = max_points_per_job
-        self.interval = 1.0 / max_rate_hz
-        self.history_limit = history_limit
-        self.max_pose_markers = max_pose_markers
-        self.frame_nodes_max = frame_nodes_max
-        self.max_jobs = max_jobs
+        self.settings = settings if settings is not None else ViewerSettings()
+        self.interval = 1.0 / self.settings.max_rate_hz
         self.stats = ViewerStats()
 
         self._lock = threading.RLock()
@@ -205,7 +190,7 @@ class ViewerServer(Pusher):
             select: show this group now; by default only when nothing is shown yet.
         """
         group = group or job_id
-        scene = SequenceScene.from_sequence(sequence, max_points=self.max_points_per_job)
+        scene = SequenceScene.from_sequence(sequence, max_points=self.settings.max_points_per_job)
         with self._lock:
             old = self._jobs.pop(job_id, None)
             if old is not None:
@@ -218,7 +203,7 @@ class ViewerServer(Pusher):
                 group=group,
                 key=self._unique_key(job_id),
                 scene=scene,
-                state=RunState(history=History(self.history_limit), pose_dtype=np.float32),
+                state=RunState(history=History(self.settings.history_limit), pose_dtype=np.float32),
                 index=len(members),
             )
             members.append(job_id)
@@ -454,7 +439,7 @@ class ViewerServer(Pusher):
         return key
 
     def _evict(self) -> None:
-        while len(self._jobs) > self.max_jobs:
+        while len(self._jobs) > self.settings.max_jobs:
             victims = [j for j in self._jobs.values() if j.state.finished and j.group != self._selected]
             if not victims:
                 return

@@ -14,10 +14,10 @@ characteristic length ``s = Sequence.scale()`` (median point range; 125 px on v1
 * ``multiway``: odometry edges from ``icp``; loop closures proposed by proximity of the
   current positions within ``0.8 s`` (100 px on v1_pose0), at least 2 frames apart, 8 nearest
   per frame, kept when their ICP fitness at ``d/2`` reaches 0.6. On 2D keyframes
-  (``loop_global``, on in the ``laser-keyframes`` profile) the global scan matcher proposes and
+  (``posegraph.loop_global``, on in the ``laser-keyframes`` profile) the global scan matcher proposes and
   verifies them instead (`strep_core.registration.global_loop_closures`: the 3 nearest earlier
   keyframes within ``3 s`` of every 2nd keyframe, matched over every heading, kept at a score of
-  0.6 both ways and a heading within 45 degrees of the chain's, ``loop_global_turn``), and
+  0.6 both ways and a heading within 45 degrees of the chain's, ``posegraph.loop_global_turn``), and
   odometry edges may then be pruned by the line process too.
 * ``kiss``: KISS-ICP voxel ``6.5 h``, ``h`` the median nearest-neighbour spacing of the points
   within a frame (`strep_core.registration.point_spacing`): a voxel must gather several points
@@ -37,7 +37,7 @@ import numpy as np
 from strep_core import geometry as g
 from strep_core import metrics
 from strep_core import registration as reg
-from strep_core.config import ClassicalConfig, RunConfig
+from strep_core.config import KissConfig, RunConfig
 from strep_core.events import IterationEvent, pose_list
 from strep_core.methods.base import MethodOutput, RunContext, method
 from strep_core.sequence import Sequence
@@ -101,7 +101,7 @@ class _Progress:
 def icp_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: RunContext) -> MethodOutput:
     """Incremental point-to-plane ICP; see `strep_core.registration.incremental_icp`."""
     params = reg.resolve_params(seq, config.classical)
-    progress = _Progress(seq, init, ctx, total=len(seq), interval=config.classical.event_interval)
+    progress = _Progress(seq, init, ctx, total=len(seq), interval=config.classical.event_interval_frames)
     out = reg.incremental_icp(seq, init, params, on_frame=lambda k, poses: progress.step(k + 1, poses, k + 1))
     frames, counts = reg.pair_report(out.pairs)
     return MethodOutput(
@@ -136,10 +136,10 @@ def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
     Information matrices come from `get_information_matrix_from_point_clouds`. 2D runs in 3D
     at ``z = 0`` and the result is projected onto SE(2).
     """
-    cfg = config.classical
-    params = reg.resolve_params(seq, cfg)
+    params = reg.resolve_params(seq, config.classical)
+    cfg = config.classical.posegraph
     k_frames = len(seq)
-    progress = _Progress(seq, init, ctx, total=2 * k_frames, interval=cfg.event_interval)
+    progress = _Progress(seq, init, ctx, total=2 * k_frames, interval=config.classical.event_interval_frames)
     odo = reg.incremental_icp(seq, init, params, on_frame=lambda k, poses: progress.step(k + 1, poses, k + 1))
     clouds = odo.clouds
     radius = cfg.loop_radius if cfg.loop_radius is not None else cfg.loop_radius_fraction * seq.scale()
@@ -158,7 +158,7 @@ def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
                 odo.poses,
                 params,
                 radius=cfg.loop_global_radius * seq.scale(),
-                min_gap=max(cfg.loop_min_gap, cfg.local_map_frames + 1),
+                min_gap=max(cfg.loop_min_gap, config.classical.icp.local_map_frames + 1),
                 min_score=cfg.loop_global_score,
                 min_fitness=cfg.loop_min_fitness,
                 max_per_frame=cfg.loop_global_candidates,
@@ -218,26 +218,26 @@ def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
 # kiss
 
 
-def kiss_settings(seq: Sequence, cfg: ClassicalConfig) -> dict[str, float]:
+def kiss_settings(seq: Sequence, cfg: KissConfig) -> dict[str, float]:
     """KISS-ICP settings for ``seq``, in KISS's internal unit (see `kiss_method`).
 
-    Returns ``unit`` (sequence units per KISS unit: ``scale / kiss_reference_scale``), and in
-    KISS units: ``voxel`` (``kiss_voxel`` or ``kiss_voxel_spacing * point_spacing``), ``max_range``
+    Returns ``unit`` (sequence units per KISS unit: ``scale / reference_scale``), and in
+    KISS units: ``voxel`` (``voxel`` or ``voxel_spacing * point_spacing``), ``max_range``
     (the data's largest point range: KISS drops map points farther than it from the sensor and
     weighs rotation errors by it), ``initial_threshold`` and ``min_motion`` (KISS's defaults
     for its 1 m voxel, 2 m and 0.1 m, scaled by the voxel).
     """
     assert seq.origins is not None
     scale = seq.scale()
-    unit = scale / cfg.kiss_reference_scale
-    voxel = (cfg.kiss_voxel if cfg.kiss_voxel is not None else cfg.kiss_voxel_spacing * reg.point_spacing(seq)) / unit
+    unit = scale / cfg.reference_scale
+    voxel = (cfg.voxel if cfg.voxel is not None else cfg.voxel_spacing * reg.point_spacing(seq)) / unit
     max_range = max(float(np.linalg.norm(f - o, axis=1).max()) for f, o in zip(seq.frames, seq.origins, strict=True))
     return {
         "unit": unit,
         "voxel": voxel,
         "max_range": 1.01 * max(max_range / unit, voxel),
-        "initial_threshold": cfg.kiss_initial_threshold * voxel,
-        "min_motion": cfg.kiss_min_motion * voxel,
+        "initial_threshold": cfg.initial_threshold * voxel,
+        "min_motion": cfg.min_motion * voxel,
     }
 
 
@@ -247,7 +247,7 @@ def kiss_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: RunCont
 
     KISS's robust kernel weighs a residual r by ``k^2 / (k + r^2)^2``: it mixes a length with a
     squared length, so KISS does not behave the same in pixels and in metres. Frames are
-    therefore divided by ``unit = scale / kiss_reference_scale`` (the data's median range
+    therefore divided by ``unit = scale / kiss.reference_scale`` (the data's median range
     becomes 10 units, as for the LiDARs KISS was tuned on) and translations multiplied back.
     On v1_pose0 most voxels between 0.11 and 0.22 of the scale then give 0.7 to 3 px, where
     the same voxels in raw pixels land anywhere between 20 and 400 px. KISS stays chaotic on
@@ -255,7 +255,7 @@ def kiss_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: RunCont
     after losing a few frames around frame 150.
 
     KISS predicts each frame's motion with its constant-velocity model. With
-    ``kiss_prior="init"`` (or ``"auto"`` when the initial guess moves: odometry), the guess's
+    ``kiss.prior="init"`` (or ``"auto"`` when the initial guess moves: odometry), the guess's
     relative motion ``init[k-1]^-1 init[k]`` replaces that prediction before each frame. Its
     trajectory starts at identity and is composed with ``init[0]``.
     """
@@ -263,12 +263,12 @@ def kiss_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: RunCont
     from kiss_icp.config.config import AdaptiveThresholdConfig, DataConfig, MappingConfig, RegistrationConfig
     from kiss_icp.kiss_icp import KissICP
 
-    cfg = config.classical
+    cfg = config.classical.kiss
     st = kiss_settings(seq, cfg)
     kiss_cfg = KISSConfig(
         data=DataConfig(max_range=st["max_range"], min_range=0.0, deskew=False),
-        mapping=MappingConfig(voxel_size=st["voxel"], max_points_per_voxel=cfg.kiss_max_points_per_voxel),
-        registration=RegistrationConfig(max_num_threads=cfg.threads),
+        mapping=MappingConfig(voxel_size=st["voxel"], max_points_per_voxel=cfg.max_points_per_voxel),
+        registration=RegistrationConfig(max_num_threads=config.classical.threads),
         adaptive_threshold=AdaptiveThresholdConfig(
             initial_threshold=st["initial_threshold"], min_motion_th=st["min_motion"]
         ),
@@ -276,10 +276,10 @@ def kiss_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: RunCont
     init3 = g.to_se3(init)
     rel = g.relative(init3[:-1], init3[1:])
     moving = bool(np.abs(rel - np.eye(4)).max() > 1e-12)
-    use_init = cfg.kiss_prior == "init" or (cfg.kiss_prior == "auto" and moving)
+    use_init = cfg.prior == "init" or (cfg.prior == "auto" and moving)
 
     odometry = KissICP(kiss_cfg)
-    progress = _Progress(seq, init, ctx, total=len(seq), interval=cfg.event_interval)
+    progress = _Progress(seq, init, ctx, total=len(seq), interval=config.classical.event_interval_frames)
     poses3 = np.repeat(np.eye(4)[None], len(seq), axis=0)
     stamps = np.zeros(0)
     t0 = time.perf_counter()

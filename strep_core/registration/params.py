@@ -2,12 +2,12 @@
 
 Data-derived lengths (`resolve_params`), with ``s = Sequence.scale()`` (median point range):
 
-* correspondence distance ``d = correspondence_fraction * s``; ICP runs coarse to fine over
-  ``icp_scales * d``;
-* voxel ``v = voxel_fraction * s``;
-* 3D normal radius ``normal_radius_factor * max(v, h)``, ``h`` the median spacing of
+* correspondence distance ``d = icp.correspondence_fraction * s``; ICP runs coarse to fine over
+  ``icp.scales * d``;
+* voxel ``v = icp.voxel_fraction * s``;
+* 3D normal radius ``normals.radius_factor * max(v, h)``, ``h`` the median spacing of
   neighbouring points (`point_spacing`), so that sparse clouds still find neighbours;
-  2D normals from the ``normal_neighbours`` nearest neighbours in the plane.
+  2D normals from the ``normals.neighbours`` nearest neighbours in the plane.
 
 The figures behind the defaults: docs/design/scan-matching.md and the classical methods'
 docstring (`strep_core.methods.classical`).
@@ -83,56 +83,57 @@ class RegistrationParams:
 def resolve_params(seq: Sequence, cfg: ClassicalConfig) -> RegistrationParams:
     """Turn a `ClassicalConfig` into absolute lengths for ``seq`` (rules in the module doc)."""
     s = seq.scale()
-    voxel = cfg.voxel if cfg.voxel is not None else cfg.voxel_fraction * s
-    normal_radius = cfg.normal_radius if cfg.normal_radius is not None else 1.0
-    if cfg.normal_radius is None and seq.dim == 3:  # 2D normals use neighbour counts, not a radius
-        normal_radius = cfg.normal_radius_factor * max(voxel, point_spacing(seq))
+    icp, normals, scan = cfg.icp, cfg.normals, cfg.scanmatch
+    voxel = icp.voxel if icp.voxel is not None else icp.voxel_fraction * s
+    normal_radius = normals.radius if normals.radius is not None else 1.0
+    if normals.radius is None and seq.dim == 3:  # 2D normals use neighbour counts, not a radius
+        normal_radius = normals.radius_factor * max(voxel, point_spacing(seq))
     axis: tuple[float, float, float] | None = None
-    if cfg.icp_yaw_axis is not None:
-        a = np.asarray(cfg.icp_yaw_axis, dtype=np.float64)
+    if icp.yaw_axis is not None:
+        a = np.asarray(icp.yaw_axis, dtype=np.float64)
         x, y, z = (float(c) for c in a / np.linalg.norm(a))
         axis = (x, y, z)
-    d = cfg.max_correspondence if cfg.max_correspondence is not None else cfg.correspondence_fraction * s
+    d = icp.max_correspondence if icp.max_correspondence is not None else icp.correspondence_fraction * s
     correlative = None
-    if cfg.icp_correlative > 0 and seq.dim == 2:
+    if cfg.correlative.window > 0 and seq.dim == 2:
         correlative = CorrelativeParams(
-            window=cfg.icp_correlative * d,
-            yaw_window=float(np.radians(cfg.icp_correlative_yaw)),
+            window=cfg.correlative.window * d,
+            yaw_window=float(np.radians(cfg.correlative.yaw_window)),
             yaw_step=float(np.radians(1.0)),
             resolution=d / 7.0,
             sigma=d / 3.5,
         )
     global_match = None
-    if seq.dim == 2 and cfg.icp_global != "off":
+    if seq.dim == 2 and scan.consecutive != "off":
         global_match = ScanMatchParams(
-            window=cfg.icp_global_window * s,
-            resolution=cfg.icp_global_resolution * s,
-            yaw_step=float(np.radians(cfg.icp_global_yaw_step)),
-            yaw_window=float(np.radians(cfg.icp_global_yaw_window)),
-            max_range=cfg.icp_global_range * s,
-            prior_weight=cfg.icp_global_prior,
+            window=scan.window * s,
+            resolution=scan.resolution * s,
+            yaw_step=float(np.radians(scan.yaw_step)),
+            yaw_window=float(np.radians(scan.yaw_window)),
+            max_range=scan.range * s,
+            prior_weight=scan.prior,
             prior_scale=s,
         )
     return RegistrationParams(
         dim=seq.dim,
         max_correspondence=d,
-        scales=tuple(cfg.icp_scales),
-        iterations=cfg.icp_iterations,
-        min_fitness=cfg.icp_min_fitness,
-        kernel=cfg.icp_kernel,
+        scales=tuple(icp.scales),
+        iterations=icp.iterations,
+        min_fitness=icp.min_fitness,
+        kernel=icp.kernel,
         voxel=voxel if voxel > 0 else None,
-        normal_neighbours=cfg.normal_neighbours,
+        normal_neighbours=normals.neighbours,
         normal_radius=normal_radius,
-        normal_max_nn=cfg.normal_max_nn,
-        local_map=cfg.local_map_frames,
+        normal_max_nn=normals.max_nn,
+        local_map=icp.local_map_frames,
         threads=cfg.threads,
-        yaw_search=yaw_offsets(cfg.icp_yaw_search, cfg.icp_yaw_step) if seq.dim == 2 or axis is not None else (),
+        yaw_search=yaw_offsets(icp.yaw_search, icp.yaw_step) if seq.dim == 2 or axis is not None else (),
         yaw_axis=(0.0, 0.0, 1.0) if axis is None or seq.dim == 2 else axis,
-        degeneracy=cfg.icp_degeneracy,
+        degeneracy=icp.degeneracy,
         correlative=correlative,
-        velocity_prior=cfg.icp_motion_prior == "velocity",
+        velocity_prior=icp.motion_prior == "velocity",
         global_match=global_match,
-        prior_stop=cfg.icp_global_prior_stop * s,
+        prior_stop=scan.prior_stop * s,
     )
 
 
