@@ -147,3 +147,12 @@ def test_a_rest_job_body_with_old_keys_runs_under_the_new_names(tmp_path: Path) 
             assert time.monotonic() < deadline, status
             time.sleep(0.1)
         assert status == "succeeded"
+
+
+def test_every_saved_config_of_a_benchmark_row_loads_again() -> None:
+    """The bunny[identity] rows run every method from identity with the warm-start settings
+    (start pose-graph, init identity); what they save must load and keep both."""
+    saved = RunConfig(method="strep").model_copy(update={"init": "identity"})  # as strep_bench's case_config
+    again = RunConfig.model_validate(saved.model_dump(mode="json"))
+    assert (again.start, again.init) == ("pose-graph", "identity")
+    assert again.loss.robust == RunConfig(method="strep").loss.robust  # the warm start's loss, not scratch's
