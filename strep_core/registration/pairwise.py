@@ -15,8 +15,9 @@ A pairwise result ``T`` maps *source* coordinates into *target* coordinates:
   a failed point-to-plane stage is first retried point-to-point from the same start;
 * ``kernel``: Tukey robust-kernel width as a fraction of each stage's distance (``None``: L2);
 * ``yaw_search``: yaw offsets (about the source's sensor, axis ``yaw_axis``) added to the guess
-  as extra starts of the coarsest stage; the start with the lowest trimmed distance
-  (`trimmed_distance`: the closest half of the matches both ways) goes on. Point-to-plane ICP converges only from within
+  as extra starts of the coarsest stage; the best start goes on: in 3D the lowest trimmed
+  distance (`trimmed_distance`: the closest half of the matches both ways), in 2D the most
+  source points matched within the finest distance (ties: the lower RMSE). Point-to-plane ICP converges only from within
   about 10 degrees; laser keyframes turn by up to 20 to 30;
 * ``degeneracy``: after the last stage, translation along directions the matched normals barely
   constrain returns to the guess's (`keep_guess_where_weak`); 0: off;
@@ -153,7 +154,7 @@ def _icp_stages(
     stages = tuple(scales)
     if yaw_search:
         # the search runs the coarsest stage from every start: go on from its best result
-        best = _best_yaw_start(source, target, current, yaw_search, d * scales[0], params, criteria)
+        best = _best_yaw_start(source, target, current, yaw_search, d * scales[0], d * min(scales), params, criteria)
         if best is None:  # the coarsest stage failed from every start, ``init`` included
             return PairResult(transformation=current, fitness=0.0, inlier_rmse=0.0, kept_guess=True)
         (current, fitness, rmse), stages = best, stages[1:]
@@ -255,26 +256,35 @@ def _best_yaw_start(
     init: np.ndarray,
     offsets: tuple[float, ...],
     coarse: float,
+    fine: float,
     params: RegistrationParams,
     criteria: Any,
 ) -> tuple[np.ndarray, float, float] | None:
     """The best of ``init`` and ``init`` turned about ``params.yaw_axis`` by each yaw offset, each
-    refined by one coarse ICP stage, scored by `trimmed_distance` (lowest wins).
+    refined by one coarse ICP stage, scored in 3D by `trimmed_distance` (lowest wins), in 2D by
+    fitness within ``fine`` (then RMSE).
 
-    Fitness (matches within the finest distance) picked the wrong start on turns: a frame turned by 30 degrees shares
-    half its view, and sliding it half-way back keeps as many points matched; the trimmed
-    distance is lowest at the turn (docs/design/profiles.md, "Turning depth cameras").
+    In 3D fitness picked the wrong start on turns: a camera turned by 30 degrees shares half its
+    view, and sliding it half-way back keeps as many points matched; the trimmed distance is lowest
+    at the turn. A laser scan overlaps its neighbour far more, and there the trimmed distance lost
+    two CARMEN windows that fitness registers (docs/design/profiles.md, "Turning depth cameras").
 
     Returns that candidate's coarse stage ``(transform, fitness, inlier RMSE)``, or ``None``
     when the stage fails from every start."""
-    best, best_score = None, np.inf
+    from strep_core._open3d import o3d
+
+    best, best_score = None, (np.inf, 0.0)
     for yaw in (0.0, *offsets):
         turn = np.eye(4)
         turn[:3, :3] = g.so3_exp(np.asarray(params.yaw_axis, dtype=np.float64) * yaw)
         stage = _icp_stage(source, target, init @ turn, coarse, params, criteria)
         if stage is None:
             continue
-        score = trimmed_distance(np.asarray(source.points), np.asarray(target.points), stage[0])
+        if params.planar:
+            ev = o3d.pipelines.registration.evaluate_registration(source, target, fine, stage[0])
+            score = (-round(float(ev.fitness), 3), float(ev.inlier_rmse))
+        else:
+            score = (trimmed_distance(np.asarray(source.points), np.asarray(target.points), stage[0]), 0.0)
         if score < best_score:
             best, best_score = stage, score
     return best
