@@ -277,6 +277,8 @@ def _optimize(
                 np.concatenate([temporal_pairs(frames_np, lc.window), local_pairs(pairs_all, frames_np)]),
                 axis=0,
             )
+            if fixed.any():  # a pair of two fixed partners moves nothing
+                pairs = pairs[~(fixed[pairs[:, 0]] & fixed[pairs[:, 1]])]
             src, target = losses.pair_queries(owner, pairs, query)
             clock.lap("chamfer")
             nn_idx, _ = losses.nearest_in_frame(world.detach().cpu().numpy(), owner, src, target)
