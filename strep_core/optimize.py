@@ -20,7 +20,10 @@ Decisions (the measurements behind each: docs/design/warm-start.md, docs/design/
 * occupancy BCE off by default (measured worse); loop pairs from halfway, weighted by the frames
   they span, close the chain from scratch;
 * Adam with a cosine schedule; cost per iteration linear in frames and points
-  (``benchmarks/profile_strep.py``).
+  (``benchmarks/profile_strep.py``);
+* long sequences (over 256 frames, whole laser logs) run each step on one batch of 256 frames,
+  each batch ``iterations`` times in turn, the batch's spatial partners held at their latest
+  poses: peak memory flat in the sequence's length (docs/design/whole-logs.md).
 """
 
 from __future__ import annotations
