@@ -78,25 +78,45 @@ def measure(log: str, frames: int | None, sets: list[str]) -> dict:
 
 
 def plot(rows: list[dict], png: Path) -> None:
+    """Peak memory of the refinement above its start against scans (intel windows; aces and
+    belgioioso whole as single points): rows labelled ``before*`` and ``after``."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    def rise(r: dict) -> float:
+        return r["refine_peak_mb"] - r["rss_at_refine_start_mb"]
+
     fig, ax = plt.subplots(figsize=(7, 4.2))
-    for label in sorted({r["label"] for r in rows}):
-        rs = sorted((r for r in rows if r["label"] == label and r["log"] == "intel"), key=lambda r: r["frames"])
-        if not rs:
-            continue
-        x = [r["frames"] for r in rs]
-        ax.plot(x, [r["refine_peak_mb"] - r["rss_at_refine_start_mb"] for r in rs], "o-", label=f"{label}")
-    front = sorted(
-        (r for r in rows if r["log"] == "intel" and r["label"] == rows[0]["label"]), key=lambda r: r["frames"]
+    before = sorted((r for r in rows if r["label"].startswith("before")), key=lambda r: r["frames"])
+    after = sorted((r for r in rows if r["label"] == "after" and r["log"] == "intel"), key=lambda r: r["frames"])
+    # up to 256 frames "auto" is one batch: the same run as before (bitwise), so after = before there
+    same = [r for r in before if r["frames"] <= 256 and r["log"] == "intel"]
+    ax.plot([r["frames"] for r in before], [rise(r) for r in before], "o-", label="one batch of all frames (before)")
+    ax.plot(
+        [r["frames"] for r in same + after], [rise(r) for r in same + after], "s-", label="batch_frames=auto (after)"
     )
-    ax.plot([r["frames"] for r in front], [r["front_peak_mb"] for r in front], "k--", label="front end: process peak")
-    ax.set_xlabel("scans (intel, first N)")
+    for r in rows:
+        if r["label"] == "after" and r["log"] != "intel":
+            ax.plot(r["frames"], rise(r), "^", color="C2")
+            below = r["frames"] < 400
+            ax.annotate(
+                f"{r['log']} (after)",
+                (r["frames"], rise(r)),
+                xytext=(-60 if below else 5, -14 if below else 6),
+                textcoords="offset points",
+                fontsize=8,
+            )
+    ax.plot(
+        [r["frames"] for r in before],
+        [r["front_peak_mb"] for r in before],
+        "k--",
+        label="pose-graph front end: whole process peak (torch loaded)",
+    )
+    ax.set_xlabel("scans (intel, the first N)")
     ax.set_ylabel("MB")
-    ax.set_title("Learned refinement: peak resident memory above its start")
+    ax.set_title("strep run, defaults: the refinement's peak memory above its start")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
