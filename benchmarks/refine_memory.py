@@ -1,7 +1,8 @@
 """Peak memory and wall time of `strep run` (defaults) on windows of a CARMEN log: the pose-graph
 front end and the learned refinement measured apart, in one process (docs/design/whole-logs.md).
 
-    PYTHONPATH=. python benchmarks/refine_memory.py --log intel --frames 100,200,400,910 --out /tmp/mem.jsonl
+    PYTHONPATH=. python benchmarks/refine_memory.py --log intel --frames 400 --label after --out /tmp/mem.jsonl
+    PYTHONPATH=. python benchmarks/refine_memory.py --frames 400 --set optim.batch_frames=null --label before ...
     PYTHONPATH=. python benchmarks/refine_memory.py --plot /tmp/mem.jsonl --png docs/design/whole-logs-memory.png
 
 Peak resident memory is Linux's ``VmHWM``: read when the front end hands over (the `StartEvent`),
