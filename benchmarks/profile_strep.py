@@ -45,7 +45,7 @@ def main() -> None:
     args = parser.parse_args()
 
     from strep_core import geometry as g
-    from strep_core.batching import prepare
+    from strep_core.batching import batch_size, prepare
     from strep_core.config import RunConfig
     from strep_core.events import NullSink
     from strep_core.io.deepmapping import read_deepmapping
@@ -94,7 +94,7 @@ def main() -> None:
     prep = prepare(seq, init, cfg, device, np.random.default_rng(0))
     model = StrepModel(args.method, prep.dim, prep.num_frames, cfg.model)
     opt = torch.optim.Adam(model.parameters(), lr=1e-4)
-    b = min(cfg.optim.batch_frames or prep.num_frames, prep.num_frames)
+    b = batch_size(prep.num_frames, cfg.optim.batch_frames) or prep.num_frames
     frames = torch.arange(b)
     occ_n = b * min(cfg.loss.occupancy_points, int(np.diff(prep.starts).max())) * (1 + cfg.loss.free_samples)
     occ_x = torch.randn(occ_n, prep.dim)

@@ -166,7 +166,11 @@ class OptimConfig(Section):
     warmup_iterations: int = Field(
         default=0, ge=0, le=100_000, description="learning rates rise linearly from 0 over this many first steps"
     )
-    batch_frames: int | None = Field(default=None, ge=2, le=MAX_POINTS, description="frames per batch; None: all")
+    batch_frames: Annotated[int, Field(ge=2, le=MAX_POINTS)] | Literal["auto"] | None = Field(
+        default="auto",
+        description="frames per step: batches overlapping by the Chamfer window, each visited `iterations` times; "
+        "auto: all frames up to 256, longer sequences in batches of 256 (docs/design/whole-logs.md); None: all",
+    )
     points_per_frame: int | None = Field(
         default=32, ge=8, le=MAX_POINTS, description="query points per frame per step for Chamfer; None: all"
     )

@@ -127,6 +127,30 @@ def sample_per_frame(starts: np.ndarray, frames: np.ndarray, k: int | None, rng:
 # Batches
 
 
+# Frames per step of a long sequence under ``optim.batch_frames="auto"``: every benchmark window and
+# sample (up to 256 frames, v1_pose0) keeps one batch of all frames; whole logs get bounded
+# batches, so the refinement's peak memory stays flat in the log's length (docs/design/whole-logs.md).
+AUTO_BATCH_FRAMES = 256
+
+
+def batch_size(num_frames: int, batch_frames: int | str | None) -> int | None:
+    """Frames per batch of a ``num_frames`` sequence: ``None`` for one batch of all frames.
+
+    ``"auto"``: all frames up to `AUTO_BATCH_FRAMES`, else batches of that many.
+    """
+    if batch_frames == "auto":
+        return None if num_frames <= AUTO_BATCH_FRAMES else AUTO_BATCH_FRAMES
+    assert batch_frames is None or isinstance(batch_frames, int)
+    return None if batch_frames is None or batch_frames >= num_frames else batch_frames
+
+
+def total_steps(num_frames: int, config: RunConfig) -> int:
+    """Optimiser steps of a run: ``optim.iterations`` per batch, so every frame gets as many
+    updates however the sequence is cut (each step takes the next batch in turn)."""
+    batches = batch_schedule(num_frames, batch_size(num_frames, config.optim.batch_frames), config.loss.window)
+    return config.optim.iterations * len(batches)
+
+
 def batch_schedule(num_frames: int, batch: int | None, window: int) -> list[np.ndarray]:
     """Contiguous batches of frames covering the sequence, overlapping by ``window`` frames.
 
@@ -140,12 +164,14 @@ def batch_schedule(num_frames: int, batch: int | None, window: int) -> list[np.n
     return [np.arange(s, s + batch) for s in starts]
 
 
-def with_partners(frames: np.ndarray, pairs: np.ndarray) -> np.ndarray:
-    """``frames`` plus their spatial partners in ``pairs`` (sorted, unique)."""
+def with_partners(frames: np.ndarray, pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``frames`` plus their spatial partners in ``pairs`` (sorted, unique), and a mask of the
+    partners that are not in ``frames`` themselves (the step holds their poses fixed)."""
     if len(pairs) == 0:
-        return frames
+        return frames, np.zeros(len(frames), dtype=bool)
     inside = np.isin(pairs[:, 0], frames)
-    return np.union1d(frames, pairs[inside, 1])
+    union = np.union1d(frames, pairs[inside, 1])
+    return union, ~np.isin(union, frames)
 
 
 def local_pairs(pairs: np.ndarray, frames: np.ndarray) -> np.ndarray:

@@ -85,11 +85,16 @@ class Latents(nn.Module):
         self.raw = nn.Parameter(torch.randn(num_frames, dim))
         self.w = nn.Parameter(torch.full((dim,), float(w_init))) if linked else None
 
-    def forward(self) -> torch.Tensor:
-        """``(K, b)`` latents of every frame (the chain always spans the whole sequence)."""
+    def forward(self, upto: int | None = None) -> torch.Tensor:
+        """``(n, b)`` latents of frames ``0 .. n-1`` (``n = upto``, default every frame).
+
+        The chain always starts at frame 0: ``z_k`` of a batch that ends at frame ``n - 1`` is the
+        whole sequence's ``z_k`` (the same numbers), and its gradient reaches every earlier ``z~_j``.
+        """
+        raw = self.raw if upto is None or upto >= len(self.raw) else self.raw[:upto]
         if self.w is None:
-            return self.raw
-        return linked_chain(self.raw, self.w)
+            return raw
+        return linked_chain(raw, self.w)
 
 
 # --------------------------------------------------------------------------------------------
@@ -247,8 +252,8 @@ class StrepModel(nn.Module):
     """Latents (per variant), pose decoder and occupancy MLP of one run.
 
     ``forward(decoder_points, frames, latents)`` returns correction vectors; the latents
-    of the whole sequence are computed once per step by ``self.latents()`` (the chain spans
-    every frame, so a batch's loss reaches earlier frames through ``w``).
+    are computed once per step by ``self.latents(upto)``, from frame 0 to the batch's last
+    frame (the chain spans every earlier frame, so a batch's loss reaches them through ``w``).
     """
 
     def __init__(self, variant: Variant, dim: int, num_frames: int, cfg: ModelConfig) -> None:
@@ -263,9 +268,9 @@ class StrepModel(nn.Module):
             Latents(num_frames, latent_dim, linked=variant == "strep", w_init=cfg.link_init) if latent_dim else None
         )
 
-    def all_latents(self) -> torch.Tensor | None:
-        """``(K, b)`` latents of every frame, or ``None`` (deepmapping)."""
-        return None if self.latents is None else self.latents()
+    def all_latents(self, upto: int | None = None) -> torch.Tensor | None:
+        """``(K, b)`` latents of every frame (of frames ``0 .. upto-1`` if given), or ``None`` (deepmapping)."""
+        return None if self.latents is None else self.latents(upto)
 
     def forward(self, decoder_points: torch.Tensor, frames: torch.Tensor, latents: torch.Tensor | None) -> torch.Tensor:
         """Correction vectors ``(B, 3|6)`` of ``frames (B,)`` from their ``(B, Nd, D)`` points."""

@@ -20,7 +20,10 @@ Decisions (the measurements behind each: docs/design/warm-start.md, docs/design/
 * occupancy BCE off by default (measured worse); loop pairs from halfway, weighted by the frames
   they span, close the chain from scratch;
 * Adam with a cosine schedule; cost per iteration linear in frames and points
-  (``benchmarks/profile_strep.py``).
+  (``benchmarks/profile_strep.py``);
+* long sequences (over 256 frames, whole laser logs) run each step on one batch of 256 frames,
+  each batch ``iterations`` times in turn, the batch's spatial partners held at their latest
+  poses: peak memory flat in the sequence's length (docs/design/whole-logs.md).
 """
 
 from __future__ import annotations
@@ -39,11 +42,13 @@ from strep_core.artifacts import load_into, load_model, model_artifact
 from strep_core.batching import (
     Prepared,
     batch_schedule,
+    batch_size,
     local_pairs,
     prepare,
     ragged_indices,
     sample_per_frame,
     temporal_pairs,
+    total_steps,
     weak_matrices,
     with_partners,
 )
@@ -183,7 +188,9 @@ def _optimize(
     lc, oc = config.loss, config.optim
     prep, model, model_cfg, optimizer = _build(seq, init_poses, config, variant, device, rng)
     k, d = prep.num_frames, prep.dim
-    total = oc.iterations if optimizer is not None else 0
+    batch = batch_size(k, oc.batch_frames)
+    schedule = batch_schedule(k, batch, lc.window)
+    total = total_steps(k, config) if optimizer is not None else 0
 
     def lr_factor(it: int) -> float:
         warm = min(1.0, (it + 1) / oc.warmup_iterations) if oc.warmup_iterations else 1.0
@@ -200,7 +207,6 @@ def _optimize(
     current = prep.init.clone()  # (K, D+1, D+1) latest normalised poses of every frame
     weak = weak_matrices(prep) if lc.weak_weight > 0 else None
     base_lrs = [grp["lr"] for grp in optimizer.param_groups] if optimizer else []
-    schedule = batch_schedule(k, oc.batch_frames, lc.window)
     pairs_all = np.zeros((0, 2), dtype=np.int64)
     pairs_found = False  # spatial pairs computed at least once (they may start late: loop_after)
     history: list[dict[str, Any]] = []
@@ -244,11 +250,20 @@ def _optimize(
                 radius=lc.loop_radius_fraction,
                 max_per_frame=lc.loop_neighbours,
             )
-        frames_np = with_partners(schedule[it % len(schedule)], pairs_all)
+        # the batch's spatial partners outside it join at their latest poses, held fixed: the
+        # decoder's autograd tape spans the batch only (docs/design/whole-logs.md)
+        frames_np, fixed = with_partners(schedule[it % len(schedule)], pairs_all)
         frames_t = torch.as_tensor(frames_np, device=device)
         clock.lap("batching")
 
-        poses = _poses(model, prep, frames_t, model.all_latents(), model_cfg)
+        moving_np = frames_np[~fixed]
+        moving = torch.as_tensor(moving_np, device=device) if fixed.any() else frames_t
+        decoded = _poses(model, prep, moving, model.all_latents(int(moving_np[-1]) + 1), model_cfg)
+        if fixed.any():
+            poses = current.index_select(0, frames_t)
+            poses[torch.as_tensor(~fixed, device=device)] = decoded
+        else:
+            poses = decoded
         clock.lap("decoder_forward")
 
         idx, owner = ragged_indices(prep.starts, frames_np)
@@ -265,6 +280,8 @@ def _optimize(
                 np.concatenate([temporal_pairs(frames_np, lc.window), local_pairs(pairs_all, frames_np)]),
                 axis=0,
             )
+            if fixed.any():  # a pair of two fixed partners moves nothing
+                pairs = pairs[~(fixed[pairs[:, 0]] & fixed[pairs[:, 1]])]
             src, target = losses.pair_queries(owner, pairs, query)
             clock.lap("chamfer")
             nn_idx, _ = losses.nearest_in_frame(world.detach().cpu().numpy(), owner, src, target)
@@ -299,8 +316,8 @@ def _optimize(
         if lc.weak_weight > 0:
             # translation corrections along directions the frame's normals barely constrain
             assert weak is not None
-            delta = poses[:, :d, d] - prep.init.index_select(0, frames_t)[:, :d, d]
-            terms["weak"] = torch.einsum("bi,bij,bj->b", delta, weak.index_select(0, frames_t), delta).mean()
+            delta = decoded[:, :d, d] - prep.init.index_select(0, moving)[:, :d, d]
+            terms["weak"] = torch.einsum("bi,bij,bj->b", delta, weak.index_select(0, moving), delta).mean()
         if lc.occupancy_weight > 0:
             # during the warm-up the map learns from the current poses without moving them
             warm = it < lc.occupancy_warmup
@@ -351,7 +368,7 @@ def _optimize(
     t_final = time.perf_counter()
     with torch.inference_mode():
         latents = model.all_latents()
-        chunk = oc.batch_frames or k
+        chunk = batch or k
         final = torch.cat(
             [
                 _poses(model, prep, torch.arange(s, min(s + chunk, k), device=device), latents, model_cfg)

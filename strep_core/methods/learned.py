@@ -23,7 +23,9 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 def _iterations(seq: Sequence, cfg: RunConfig) -> int:
-    return cfg.optim.iterations
+    from strep_core.batching import total_steps  # (imports torch: after the line above)
+
+    return total_steps(len(seq), cfg)
 
 
 @method(
