@@ -35,6 +35,7 @@ the probe picks: no suite has constants of its own beyond its reader options.
 from __future__ import annotations
 
 import math
+import os
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
@@ -211,6 +212,17 @@ def case_config(case: BenchCase, method: str, quick: bool, seq: Sequence) -> Run
     return cfg
 
 
+def _as_typed(source: str | None) -> str | None:
+    """``source`` relative to the working directory (``../shared/data/...`` from the repository),
+    as a user types it, so the recorded rows carry no machine's folders."""
+    if source is None:
+        return None
+    try:
+        return os.path.relpath(source)
+    except ValueError:  # another drive (Windows)
+        return source
+
+
 def run_case(case: BenchCase, methods: list[str], quick: bool, threads: int | None = None) -> list[dict[str, Any]]:
     """Run each method on the case through the runner (`strep_core.runner.run`), the case read once;
     ``threads`` (torch CPU threads) overrides the configs' default."""
@@ -229,7 +241,7 @@ def run_case(case: BenchCase, methods: list[str], quick: bool, threads: int | No
             row["status"] = "ok"
             # what `strep run INPUT --config` needs to redo this row: every setting, the profile
             # the probe chose among them, the reader options and the frame selection
-            row["input"] = case.source
+            row["input"] = _as_typed(case.source)
             row["config"] = {**res.config.model_dump(mode="json"), "frames": case.frames}
         except Exception as exc:  # a failing method is a result, not a crash of the benchmark
             row = {"method": m, "status": f"failed: {type(exc).__name__}: {exc}", "ate": None, "point_l2": None}
