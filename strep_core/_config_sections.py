@@ -181,7 +181,11 @@ class OptimConfig(Section):
         description="working set: frames with more points keep a fixed random subset",
     )
     pair_interval: int = Field(default=10, ge=1, description="recompute spatial neighbours every N iterations")
-    event_interval: int = Field(default=5, ge=1, description="emit an iteration event every N iterations")
+    event_interval: int = Field(
+        default=5,
+        ge=1,
+        description="emit an iteration event every N iterations (with several batches: every N sweeps of them)",
+    )
 
 
 class DataConfig(Section):

@@ -356,7 +356,8 @@ def _optimize(
         it += 1
         iteration_times.append(time.perf_counter() - t_iter)
 
-        if it % oc.event_interval == 0 or it == total:
+        # one event per event_interval sweeps of the batches: as many events as a one-batch run
+        if it % (oc.event_interval * len(schedule)) == 0 or it == total:
             values = {"total": float(loss.detach()), "chamfer": 0.0, "occupancy": 0.0}
             values.update({n: float(v.detach()) for n, v in terms.items()})
             report(it, values)

@@ -87,9 +87,12 @@ def _config(batch_frames: int | None) -> RunConfig:
 
 
 def test_small_batches_reach_the_ate_of_one_batch(noisy40: Sequence) -> None:
-    one = run(noisy40, _config(None))
+    whole = ListSink()
+    one = run(noisy40, _config(None), sink=whole)
     sink = ListSink()
     small = run(noisy40, _config(12), sink=sink)
+    # an event per event_interval sweeps of the 4 batches: as many as the one-batch run sends
+    assert len(sink.of_kind("iteration")) == len(whole.of_kind("iteration"))
     batches = batch_schedule(40, 12, RunConfig().loss.window)
     assert len(batches) == 4
     assert small.iterations == 100 * len(batches)
