@@ -17,8 +17,8 @@ A pairwise result ``T`` maps *source* coordinates into *target* coordinates:
 * ``yaw_search``: yaw offsets (about the source's sensor, axis ``yaw_axis``) added to the guess
   as extra starts of the coarsest stage; the best start goes on: in 3D the lowest trimmed
   distance (`trimmed_distance`: the closest half of the matches both ways), in 2D the most
-  source points matched within the finest distance (ties: the lower RMSE). Point-to-plane ICP converges only from within
-  about 10 degrees; laser keyframes turn by up to 20 to 30;
+  source points matched within the finest distance (ties: the lower RMSE). Point-to-plane ICP
+  converges only from within about 10 degrees; laser keyframes turn by up to 20 to 30;
 * ``degeneracy``: after the last stage, translation along directions the matched normals barely
   constrain returns to the guess's (`keep_guess_where_weak`); 0: off;
 * ``correlative`` (2D): the stages also run from a correlative scan match around the guess
@@ -271,8 +271,13 @@ def _best_yaw_start(
 
     Returns that candidate's coarse stage ``(transform, fitness, inlier RMSE)``, or ``None``
     when the stage fails from every start."""
+    from scipy.spatial import cKDTree
+
     from strep_core._open3d import o3d
 
+    if not params.planar:  # the trimmed distance's inputs, once for every start
+        src_pts, tgt_pts = np.asarray(source.points), np.asarray(target.points)
+        tree = cKDTree(tgt_pts)
     best, best_score = None, (np.inf, 0.0)
     for yaw in (0.0, *offsets):
         turn = np.eye(4)
@@ -284,24 +289,26 @@ def _best_yaw_start(
             ev = o3d.pipelines.registration.evaluate_registration(source, target, fine, stage[0])
             score = (-round(float(ev.fitness), 3), float(ev.inlier_rmse))
         else:
-            score = (trimmed_distance(np.asarray(source.points), np.asarray(target.points), stage[0]), 0.0)
+            score = (trimmed_distance(src_pts, tgt_pts, stage[0], target_tree=tree), 0.0)
         if score < best_score:
             best, best_score = stage, score
     return best
 
 
-def trimmed_distance(source: np.ndarray, target: np.ndarray, transform: np.ndarray, keep: float = 0.5) -> float:
+def trimmed_distance(
+    source: np.ndarray, target: np.ndarray, transform: np.ndarray, keep: float = 0.5, *, target_tree: Any = None
+) -> float:
     """Symmetric trimmed nearest-neighbour distance of ``source`` moved by ``transform`` and
     ``target``: the mean of each side's closest ``keep`` fraction of distances, averaged over
     both sides. The same criterion as the trimmed Chamfer kernel of the learned methods
-    (`strep_core.losses`), which has its minimum at the true turn of half-overlapping views."""
+    (`strep_core.losses`), which has its minimum at the true turn of half-overlapping views.
+    ``target_tree``: a `scipy.spatial.cKDTree` of ``target``, to reuse over several transforms."""
     from scipy.spatial import cKDTree
 
-    d = source.shape[1]
-    moved = source @ transform[:d, :d].T + transform[:d, d]
-    sides = (cKDTree(target).query(moved)[0], cKDTree(moved).query(target)[0])
+    moved = g.apply(transform, source)
+    tree = cKDTree(target) if target_tree is None else target_tree
     out = 0.0
-    for dist in sides:
+    for dist in (tree.query(moved)[0], cKDTree(moved).query(target)[0]):
         n = max(1, int(len(dist) * keep))
         out += float(np.partition(dist, n - 1)[:n].mean())
     return out / 2
