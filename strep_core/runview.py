@@ -136,9 +136,11 @@ def run_view(state: RunState, *, learned: bool, status: str | None = None) -> Ru
         view.ate_start = (0.0, initial) if initial is not None else None
         view.ate_end = (float(k), view.ate_now) if state.finished and view.ate_now is not None else None
         frame, p, passes = _pass(state, max(state.iteration, 0))
+        if state.finished:  # (a method may report no frames: the result places them all)
+            frame, p = k, passes
         view.done = frame if p == 1 else k
         if k:
-            view.progress = f"{frame if state.iteration > 0 else 0} / {k} frames"
+            view.progress = f"{frame if state.iteration > 0 or state.finished else 0} / {k} frames"
             if passes > 1 and not state.finished:
                 view.progress += f" (pass {p} of {passes})"
     view.stage_text = _stage_text(state, view, status)

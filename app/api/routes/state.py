@@ -75,7 +75,7 @@ async def list_starts() -> StartsPublic:
 
 def default_iterations(start: str) -> int:
     """The iterations a learned run from ``start`` gets when a request names none."""
-    return RunConfig.model_validate({"method": "strep", "start": start}).optim.iterations
+    return RunConfig.build(method="strep", start=start).optim.iterations
 
 
 class JobState:
