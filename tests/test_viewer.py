@@ -507,6 +507,8 @@ def test_a_comparisons_panels_follow_its_methods_order(viewer, seq, icp_events) 
     x = {j: float(np.asarray(viewer.scene_node(f"/jobs/{k}").position)[0]) for j, k in keys.items()}
     assert x["ord-icp"] < x["ord-id"]
     assert [viewer._jobs[j].index for j in ("ord-icp", "ord-id")] == [0, 1]  # the page's colours' order
+    folders = [viewer._jobs[j].nodes["gui/folder"].order for j in ("ord-icp", "ord-id")]
+    assert folders[0] < folders[1], folders  # the side panel lists them in the same order
     # finished: the status line says so (before: "N run(s); replay: live"), the figures are labelled
     assert viewer.gui.status.content == "finished: Play replays it, the Iteration slider steps through it"
     text = viewer._jobs["ord-icp"].nodes["gui/text"].content

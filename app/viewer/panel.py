@@ -81,6 +81,9 @@ class Job:
         return 0.3 * self.scene.marker_scale() * point_scale
 
 
+FOLDER_ORDER = 1_000_000.0  # past every control's automatic order
+
+
 def build(
     server: viser.ViserServer,
     job: Job,
@@ -140,7 +143,8 @@ def build(
             thickness_units="screen",
             visible=show_gt,
         )
-    with server.gui.add_folder(job.label, visible=visible) as folder:
+    # below the controls, in the group's order (the page's), whichever job was built first
+    with server.gui.add_folder(job.label, visible=visible, order=FOLDER_ORDER + job.index) as folder:
         job.nodes["gui/folder"] = folder
         job.nodes["gui/text"] = server.gui.add_markdown(f"**{job.label}**: waiting for events")
     job.built = True

@@ -81,6 +81,8 @@ export function drawChart(canvas, series, { xLabel, xMax, empty, log = "auto" })
   const ys = values.filter(ok);
   if (!ys.length) {
     ctx.fillText(empty, 12, H / 2);
+    canvas.dataset.x = "";
+    canvas.dataset.y = "";
     return isLog;
   }
   /** @param {number} y */
@@ -90,6 +92,7 @@ export function drawChart(canvas, series, { xLabel, xMax, empty, log = "auto" })
   let y0 = Math.min(...ys.map(ty)), y1 = Math.max(...ys.map(ty));
   if (y1 === y0) { y0 -= 0.5; y1 += 0.5; }
   if (!isLog) { const pad = (y1 - y0) * 0.05; y0 = Math.max(y0 - pad, Math.min(0, y0)); y1 += pad; }
+  else if (y1 - y0 >= 1) { y0 = Math.floor(y0); y1 = Math.ceil(y1); }  // whole decades, each labelled
   const ticks = yTicks(y0, y1, isLog).map((v) => ({ v, text: fmt(isLog ? 10 ** v : v) }));
   // the plot starts right of the widest tick label, so no label lies on a curve
   const L = Math.ceil(Math.max(...ticks.map((t) => ctx.measureText(t.text).width))) + 12;
@@ -109,6 +112,9 @@ export function drawChart(canvas, series, { xLabel, xMax, empty, log = "auto" })
   ctx.fillText("0", L, H - 8);
   ctx.textAlign = "right";
   ctx.fillText(`${Math.round(x1)} ${xLabel}`, W - R, H - 8);
+  // what the axes say, for tests and tools (a canvas's text cannot be read back)
+  canvas.dataset.x = `${Math.round(x1)} ${xLabel}`;
+  canvas.dataset.y = isLog ? "log" : "linear";
   ctx.textAlign = "left";
   // earlier series wider, so a curve that another one covers still shows at its edges
   series.forEach((s, i) => {

@@ -169,7 +169,7 @@ function showActions() {
   rrd.hidden = !name;
   if (name) {
     rrd.href = `/api/comparisons/${state.comparison}/files/${encodeURIComponent(name)}`;
-    rrd.textContent = `Comparison ${name.split(".").pop()}`;
+    rrd.textContent = `Comparison ${name.split(".")[0]}`;
   }
 }
 
