@@ -274,6 +274,13 @@ def test_newcomer_path_offline(server: Server, browser: Browser, tmp_path: Path)
     assert "started" in page.inner_text("#message")
     api = httpx.Client(base_url=server.url, timeout=30)
     cmp_id = page.evaluate("() => strepPage.comparison")
+    assert page.url.endswith(f"#comparison={cmp_id}")  # the address keeps the comparison (reloads)
+    # a second tab opened while it runs shows it too (before: an empty live panel)
+    other = context.new_page()
+    other.goto(server.url)
+    other.locator("#results tbody tr").nth(1).wait_for(timeout=10_000)
+    assert other.inner_text("#live-title") == "sim2d: strep vs strep-nolink"
+    other.close()
 
     def statuses() -> list[str]:
         return [j["status"] for j in api.get(f"/api/comparisons/{cmp_id}").json()["jobs"]]
@@ -466,6 +473,10 @@ def test_classical_comparison_of_an_upload(server: Server, browser: Browser, tmp
     assert progress == ["64 / 64 frames", "64 / 64 frames"], progress
     stages = [rows.nth(i).locator("td.stage").inner_text() for i in range(2)]
     assert all(re.fullmatch(r"done in [0-9.]+ s: 64 frames, ATE 56 → 0\.[0-9]+ px", s) for s in stages), stages
+    # the results table fits its panel at 1280 px: every file link shows (before: cut off)
+    assert page.evaluate(
+        "() => { const w = document.querySelector('#results').parentElement; return w.scrollWidth <= w.clientWidth; }"
+    )
     page.evaluate("() => document.activeElement && document.activeElement.blur()")
     page.screenshot(path=shots / "browser-classical.png", full_page=True)
 

@@ -16,10 +16,12 @@ function scheduleRedraw() {
   requestAnimationFrame(() => { redrawPending = false; showLive(); });
 }
 
+/** Refresh the past jobs; returns them (newest first). */
 async function loadJobs() {
   /** @type {{data: import("./state.js").Job[]}} */
   const { data } = await api("/api/jobs?limit=50").catch(() => ({ data: [] }));
   showJobs(data);
+  return data;
 }
 
 /** @param {string | null} [selectId] */
@@ -182,8 +184,14 @@ async function init() {
     state.starts = starts.data;
     showMethods();
     showStarts(starts.default);
-    if (location.hash.length > 1) await openEntry(location.hash.slice(1));
-    else { showLive(); loadJobs(); }
+    if (location.hash.length > 1) {
+      await openEntry(location.hash.slice(1));
+    } else {
+      // a fresh page while a run goes on (another tab started it): show that run
+      const running = (await loadJobs()).find((j) => j.status === "running" || j.status === "queued");
+      if (running) await openEntry(running.comparison_id ? `comparison=${running.comparison_id}` : `job=${running.id}`);
+      else showLive();
+    }
   } catch (err) {
     say(`cannot reach the service: ${/** @type {Error} */ (err).message}`, true);
   }

@@ -145,7 +145,7 @@ function resultRow(f) {
   const run = j?.run;
   const unit = run?.unit ? ` ${esc(run.unit)}` : "";
   const files = j && j.status === "succeeded"
-    ? j.files.map((name) => `<a href="/api/jobs/${j.id}/files/${encodeURIComponent(name)}" download title="${esc(name)}">${esc(name.split(".")[0])}</a>`).join("")
+    ? j.files.map((name) => `<a href="/api/jobs/${j.id}/files/${encodeURIComponent(name)}" download title="${esc(name)}">${esc(name.split(".")[0])}</a>`).join(" ")
     : status === "running" || status === "queued" ? `<a href="#" data-cancel="${f.id}">cancel</a>` : "";
   return `<tr data-job-id="${f.id}"><td><span class="swatch" style="background:${f.color}"></span>${esc(f.method)}</td>
     <td class="status status-${status}" title="${esc(j?.error)}">${status}</td>
