@@ -36,10 +36,17 @@ def test_the_starts_and_their_budgets_come_from_the_run_config(client: TestClien
     assert all(len(s["label"]) <= 24 for s in body["data"])
 
 
+def test_the_preset_is_the_services(client: TestClient) -> None:
+    body = client.get("/api/preset").json()
+    assert body == {"sequence_id": "sample:sim2d", "methods": ["strep", "strep-nolink"], "start": "scratch"}
+
+
 def test_the_page_holds_no_copy_of_the_servers_names() -> None:
-    """No rules language, no stage names, result file names or default budgets in the page."""
+    """No rules language, no stage names, result file names, default budgets or preset in the page."""
     text = "\n".join(p.read_text() for p in [*sorted(STATIC.rglob("*.js")), STATIC / "index.html"])
-    for name in ("applyRules", "events/rules", "init:", "warm start", "recording.rrd", "metrics.json"):
+    names = ("applyRules", "events/rules", "init:", "warm start", "recording.rrd", "metrics.json", "sample:")
+    names += ('"strep"', '"strep-nolink"')  # the preset's methods
+    for name in names:
         assert name not in text, name
     assert not re.search(r"\b(1000|300)\b", text)  # the starts' default iterations
     assert "data-iterations" not in text

@@ -179,11 +179,13 @@ async function init() {
       if (state.viewer) link.href = state.viewer;
       else link.hidden = true;
     }
-    const [methods, starts] = await Promise.all([api("/api/methods"), api("/api/starts"), loadSequences()]);
+    const [methods, starts, preset] = await Promise.all([api("/api/methods"), api("/api/starts"), api("/api/preset")]);
     state.methods = methods.data;
     state.starts = starts.data;
+    state.preset = preset;
+    await loadSequences();
     showMethods();
-    showStarts(starts.default);
+    showStarts(preset.start);
     if (location.hash.length > 1) {
       await openEntry(location.hash.slice(1));
     } else {

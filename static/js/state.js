@@ -71,6 +71,11 @@
  * @property {string} description
  * @property {number} iterations
  *
+ * @typedef {object} Preset  The comparison the page offers first (PresetPublic).
+ * @property {string} sequence_id
+ * @property {string[]} methods
+ * @property {string} start
+ *
  * @typedef {object} Followed  A followed job: its colour and its latest state.
  * @property {string} id
  * @property {string} method
@@ -97,6 +102,8 @@ export const state = {
   methods: [],
   /** @type {Start[]} */
   starts: [],
+  /** @type {Preset | null} */
+  preset: null,
   /** @type {string | null} the 3D viewer's address */
   viewer: null,
   /** bumps whenever the live panel shows another comparison (old streams then stop) */

@@ -25,14 +25,13 @@ export function say(text, isError = false) {
 
 // ---- the launch form -------------------------------------------------------------------------
 
-/** @param {string | null} [selectId] the sequence to select (a fresh upload) */
+/** @param {string | null} [selectId] the sequence to select (a fresh upload; else the preset's) */
 export function showSequences(selectId) {
   const sel = /** @type {HTMLSelectElement} */ ($("#sequence"));
   sel.innerHTML = state.sequences
     .map((s) => `<option value="${esc(s.id)}" title="${esc(s.name)}">${esc(s.name)} (${s.dims}D, ${s.frames} frames)</option>`)
     .join("");
-  // the first preset: the 256-frame 2D sample (there the link decides the outcome)
-  const preset = state.sequences.find((s) => s.id === "sample:sim2d");
+  const preset = state.sequences.find((s) => s.id === state.preset?.sequence_id);
   if (selectId) sel.value = selectId;
   else if (preset) sel.value = preset.id;
   showSequence();
@@ -49,7 +48,7 @@ export function showSequence() {
 export function showMethods() {
   $("#methods").innerHTML = state.methods
     .map((m) => `<label title="${esc(m.description)}"><input type="checkbox" value="${esc(m.name)}"
-      ${m.name === "strep" || m.name === "strep-nolink" ? "checked" : ""}> ${esc(m.name)}</label>`)
+      ${state.preset?.methods.includes(m.name) ? "checked" : ""}> ${esc(m.name)}</label>`)
     .join("");
 }
 

@@ -21,7 +21,7 @@ from pydantic import BaseModel, Field
 
 from app.api.deps import JobDep, ServiceDep
 from app.api.routes.jobs import job_events
-from app.models import JobStatus
+from app.models import ComparisonCreate, JobStatus
 from strep_core.config import RunConfig
 from strep_core.events import progress_events
 from strep_core.methods import available
@@ -57,6 +57,15 @@ class StartsPublic(BaseModel):
     default: str
 
 
+class PresetPublic(BaseModel):
+    """The comparison the page offers first: the link decides the outcome on this sample
+    (0.45 px against 134 px from scratch, docs/design/from-scratch.md)."""
+
+    sequence_id: str
+    methods: list[str]
+    start: str
+
+
 # the starts the page offers, in its order (RunConfig.start also takes "auto": decided by init)
 STARTS = {
     "scratch": ("from scratch", "from the identity, with no classical step: the paper's setting"),
@@ -71,6 +80,12 @@ async def list_starts() -> StartsPublic:
         for name, (label, text) in STARTS.items()
     ]
     return StartsPublic(data=data, default="scratch")
+
+
+@router.get("/preset", response_model=PresetPublic, summary="The comparison the page offers first")
+async def preset() -> PresetPublic:
+    methods = ComparisonCreate.model_fields["methods"].get_default(call_default_factory=True)
+    return PresetPublic(sequence_id="sample:sim2d", methods=methods, start="scratch")
 
 
 def default_iterations(start: str) -> int:
