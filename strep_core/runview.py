@@ -78,9 +78,11 @@ def _stage_text(state: RunState, view: RunView, status: str | None) -> str:
         return f"{status}{at}"
     if state.finished or state.stage == "write":
         return "writing files"
+    if state.stage is None:
+        return "loading the sequence…" if status == "running" else "waiting for the run…"
     if not view.learned:
         if it <= 0:
-            return f"{stage_label(state.stage)}…" if state.stage and state.stage != "prepare" else "starting…"
+            return "starting…" if state.stage == "prepare" else f"{stage_label(state.stage)}…"
         _, p, passes = _pass(state, it)
         latest = state.history.latest
         ate = f", ATE {_g(latest.ate)}{unit} so far" if latest and latest.ate is not None and p == 1 else ""
@@ -91,8 +93,6 @@ def _stage_text(state: RunState, view: RunView, status: str | None) -> str:
         return f"{head}: {start}" if start else head
     if it > 0:
         return f"optimising from {start}" if start else "optimising"
-    if state.stage is None:
-        return "loading the sequence…" if status == "running" else "waiting for the run…"
     return f"{stage_label(state.stage)}…"
 
 
