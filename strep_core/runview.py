@@ -48,8 +48,12 @@ def _num(v: Any) -> float | None:
     return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
 
 
-def _g(v: float) -> str:
-    return f"{v:.3g}"
+def figure(v: float) -> str:
+    """3 significant digits, never an exponent from 1000 up: ``0.456``, ``184``, ``1099``."""
+    return f"{v:.0f}" if abs(v) >= 1000 else f"{v:.3g}"
+
+
+_g = figure
 
 
 def _pass(state: RunState, it: int) -> tuple[int, int, int]:
@@ -71,7 +75,7 @@ def _stage_text(state: RunState, view: RunView, status: str | None) -> str:
         ates = ""
         if end is not None:
             ates = f"ATE {_g(start)} → {_g(end)}{unit}" if start is not None else f"ATE {_g(end)}{unit}"
-        secs = f" in {view.seconds:.3g} s" if view.seconds is not None else ""
+        secs = f" in {figure(view.seconds)} s" if view.seconds is not None else ""
         return f"done{secs}: {where}{ates}".rstrip(", ")
     if status in FINAL_STATUSES:
         at = f" at {view.progress}" if it > 0 else ""

@@ -11,7 +11,7 @@ from strep_core.config import RunConfig
 from strep_core.events import PROGRESS_KINDS, ListSink, ResultEvent, StageEvent, progress_events
 from strep_core.runner import load_input, run
 from strep_core.runstate import REDUCERS, History, RunState, apply
-from strep_core.runview import run_view
+from strep_core.runview import figure, run_view
 
 
 @pytest.fixture(scope="module")
@@ -72,6 +72,8 @@ def test_a_learned_run_is_drawn_in_iterations_from_its_starting_poses(strep_even
     ]
     assert texts[-1] == f"optimising from ATE {start:.3g} px"
     assert run_view(state, learned=True, status="failed").stage_text == "failed at 12 / 12 iterations"
+    # long runs read in whole seconds (before: "done in 1.1e+03 s")
+    assert figure(1098.8) == "1099" and figure(0.4561) == "0.456" and figure(184.2) == "184"
 
 
 def test_a_pose_graph_is_drawn_in_frames_with_its_result_as_one_step(multiway_events) -> None:

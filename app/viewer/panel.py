@@ -36,6 +36,7 @@ from app.viewer.scene import (
     union_bbox,
 )
 from strep_core.runstate import RunState, Snapshot, stage_line
+from strep_core.runview import figure
 
 GT_COLOR = (120, 120, 120)
 TRAJECTORY_COLORS = [(230, 80, 40), (40, 120, 230), (40, 170, 90), (170, 70, 200), (220, 170, 30)]
@@ -236,12 +237,12 @@ RESULT_FIGURES = {"ate": ("ATE", "seq"), "point_l2": ("point L2", "seq"), "wall_
 
 
 def result_line(metrics: dict[str, Any], unit: str) -> str:
-    """``"ATE 134 px, point L2 206 px, time 575 s"``: labelled, 3 significant digits, units."""
+    """``"ATE 134 px, point L2 206 px, time 1099 s"``: labelled, 3 significant digits, units."""
     parts = []
     for key, (label, kind) in RESULT_FIGURES.items():
         v = metrics.get(key)
         if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
-            parts.append(f"{label} {v:.3g} {unit if kind == 'seq' else kind}".rstrip())
+            parts.append(f"{label} {figure(v)} {unit if kind == 'seq' else kind}".rstrip())
     return ", ".join(parts) or "no figures"
 
 

@@ -19,12 +19,13 @@
 export const DECADES = 30;
 
 /**
- * A number with 3 significant digits, or "–".
+ * A number with 3 significant digits (whole from 1000 up, as the server words them), or "–".
  * @param {number | null | undefined} v
  * @returns {string}
  */
 export function fmt(v) {
-  return typeof v === "number" && isFinite(v) ? Number(v.toPrecision(3)).toString() : "–";
+  if (typeof v !== "number" || !isFinite(v)) return "–";
+  return Math.abs(v) >= 1000 ? Math.round(v).toString() : Number(v.toPrecision(3)).toString();
 }
 
 /**
