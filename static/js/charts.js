@@ -19,13 +19,13 @@
 export const DECADES = 30;
 
 /**
- * A number with 3 significant digits (whole from 1000 up, as the server words them), or "–".
+ * A number with 3 significant digits (whole from a thousand up, as the server words them), or "–".
  * @param {number | null | undefined} v
  * @returns {string}
  */
 export function fmt(v) {
   if (typeof v !== "number" || !isFinite(v)) return "–";
-  return Math.abs(v) >= 1000 ? Math.round(v).toString() : Number(v.toPrecision(3)).toString();
+  return Math.abs(v) >= 1e3 ? Math.round(v).toString() : Number(v.toPrecision(3)).toString();
 }
 
 /**
