@@ -59,13 +59,6 @@ class MethodsPublic(BaseModel):
     count: int
 
 
-class EventRulesPublic(BaseModel):
-    """How each event kind changes the page's entry of a job (`strep_core.runstate.PAGE_RULES`,
-    plus the job store's ``status`` records); a kind not listed changes nothing there."""
-
-    rules: dict[str, list[dict[str, Any]]]
-
-
 # ---- sequences -----------------------------------------------------------------------------
 
 

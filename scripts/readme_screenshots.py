@@ -69,7 +69,7 @@ def main(out: Path) -> int:
             started = time.monotonic()
             page.click("#start")
             while True:
-                jobs = page.evaluate("() => [...state.follow].map((id) => state.jobs.get(id).status)")
+                jobs = page.evaluate("() => strepPage.followed.map((f) => f.state && f.state.status)")
                 if jobs and set(jobs) <= FINAL:
                     break
                 time.sleep(1.0)

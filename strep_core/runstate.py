@@ -1,8 +1,9 @@
 """One run's state, rebuilt from its events by one reducer: ``apply(state, event) -> state``.
 
 Every view draws from a `RunState` instead of interpreting events itself: the viser viewer
-(``app.viewer``), the Rerun recorder (``app.rrd``) and the page (``static/app.js``, by the rules
-of `PAGE_RULES`, served to it). How each event kind changes the state is written once, in `REDUCERS`,
+(``app.viewer``), the Rerun recorder (``app.rrd``) and the page (``static/``, which renders the
+typed snapshots `strep_core.runview.run_view` makes of a state on the server). How each event
+kind changes the state is written once, in `REDUCERS`,
 keyed by the kinds of `strep_core.events.Event`; an event of any other kind is counted and
 otherwise ignored (never taken for an iteration). Adding a kind: docs/design/extending.md.
 
@@ -141,6 +142,9 @@ class RunState:
             where the figures are written out).
         method, total: from the start event (``total``: iterations planned, raised by any
             iteration event that plans more).
+        frames, unit: the sequence's frame count and length unit, from the start event.
+        keep_poses: keep pose vectors (False for views that draw no poses, such as the page:
+            their history then holds figures only).
         stage: the stage the run is in: a `StageEvent`'s name, ``"prepare"`` between the
             start event and iteration 0, ``"optimise"`` from the first iteration after 0.
         start_ate: ATE of the starting poses (iteration 0, after any warm start).
@@ -157,6 +161,9 @@ class RunState:
     pose_dtype: Any = np.float64
     method: str | None = None
     total: int = 0
+    frames: int = 0
+    unit: str = ""
+    keep_poses: bool = True
     stage: str | None = None
     start_ate: float | None = None
     started: bool = False
@@ -177,6 +184,7 @@ class RunState:
 
 def _start(state: RunState, event: StartEvent) -> Step:
     state.method, state.total, state.started = event.method, event.total_iterations, True
+    state.frames, state.unit = event.frames, event.unit
     if state.stage in (None, "load"):
         state.stage = "prepare"  # the optimiser sets up until its iteration 0
     state.rev += 1
@@ -200,7 +208,7 @@ def _iteration(state: RunState, event: IterationEvent) -> Step:
     elif state.stage != "optimise":
         state.stage = "optimise"  # the warm start (``init:...``) is over
         state.rev += 1
-    if event.poses is not None:
+    if event.poses is not None and state.keep_poses:
         state.poses = np.asarray(event.poses, dtype=state.pose_dtype)
         state.pose_iteration = event.iteration
     snap = Snapshot(event.iteration, event.elapsed, state.poses, dict(event.losses), event.ate)
@@ -215,7 +223,8 @@ def _result(state: RunState, event: ResultEvent) -> Step:
     losses = latest.losses if latest is not None and latest.iteration == it else {}
     state.finished = True
     state.metrics = dict(event.metrics)
-    state.poses = np.asarray(event.poses, dtype=state.pose_dtype)
+    if state.keep_poses:
+        state.poses = np.asarray(event.poses, dtype=state.pose_dtype)
     state.pose_iteration = it
     snap = Snapshot(it, event.wall_seconds, state.poses, losses, float(ate) if isinstance(ate, (int, float)) else None)
     state.history.append(snap)
@@ -230,33 +239,6 @@ REDUCERS: dict[str, Callable[[RunState, Any], Step]] = {
     "stage": _stage,
     "iteration": _iteration,
     "result": _result,
-}
-
-
-#: What the web page keeps of each kind, as data: ``static/app.js`` fetches these rules
-#: (``GET /api/events/rules``) and applies them to a job's entry, so the page holds no table of
-#: its own. Each rule, in order: ``set`` an entry field ``from`` an event field (a dotted path)
-#: or to a ``value``; or ``push`` the values ``from`` several paths onto an entry list (skipped
-#: when one is null); ``skip_null`` skips a null value, ``if`` requires fields to equal values.
-#: A kind without rules changes nothing on the page; `tests/test_runstate.py` checks the paths
-#: against the event classes and the page's figures against `apply`.
-PAGE_RULES: dict[str, list[dict[str, Any]]] = {
-    "start": [
-        {"set": "started", "value": True},
-        {"set": "total", "from": "total_iterations"},
-        {"set": "unit", "from": "unit"},
-    ],
-    "stage": [{"set": "stage", "from": "stage"}],
-    "iteration": [
-        {"set": "iteration", "from": "iteration"},
-        {"set": "total", "from": "total"},
-        {"set": "elapsed", "from": "elapsed"},
-        {"push": "loss", "from": ["iteration", "losses.total"]},
-        {"push": "ate", "from": ["iteration", "ate"]},
-        {"set": "lastAte", "from": "ate", "skip_null": True},
-        {"set": "startAte", "from": "ate", "if": {"iteration": 0}},
-    ],
-    "result": [{"set": "metrics", "from": "metrics"}],
 }
 
 
@@ -282,7 +264,7 @@ def stage_line(
     """The line that says where a run is: ``"stage: warm start (multiway)"`` before its first
     iteration event, ``"stage: warm start (multiway) done, ATE 0.069 px"`` at iteration 0,
     ``"stage: optimising (from ATE 0.069 px)"`` after; None once finished or before anything.
-    (``static/app.js`` ``stageText`` words the page's stage column by the same rules.)"""
+    (`strep_core.runview` words the page's stage column by the same rules.)"""
     if finished:
         return None
     it = None if snap is None else snap.iteration

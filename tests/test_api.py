@@ -141,18 +141,6 @@ def test_health_lists_methods(client: TestClient) -> None:
     assert {m["name"]: m["learned"] for m in methods["data"]}["identity"] is False
 
 
-def test_the_page_gets_its_event_rules_from_the_reducer_module(client: TestClient) -> None:
-    """static/app.js holds no table of event kinds: it applies the rules served here."""
-    from strep_core.runstate import PAGE_RULES
-
-    rules = client.get("/api/events/rules").json()["rules"]
-    assert set(rules) == {*PAGE_RULES, "status"}
-    assert {k: v for k, v in rules.items() if k != "status"} == PAGE_RULES
-    assert rules["status"][0] == {"set": "status", "from": "status"}
-    page = (Path(__file__).resolve().parents[1] / "static" / "app.js").read_text()
-    assert "/api/events/rules" in page and "REDUCERS" not in page
-
-
 def test_openapi_documents_the_api(client: TestClient) -> None:
     schema = client.get("/openapi.json").json()
     assert {"/api/sequences", "/api/jobs", "/api/jobs/{job_id}/events", "/api/comparisons"} <= set(schema["paths"])

@@ -3,11 +3,14 @@ Debian's chromium.
 
 The real server (``python -m app.server``, the viewer enabled) runs on free loopback ports
 with a temporary data directory. `test_newcomer_path_offline` walks the path a newcomer takes
-(the preset comparison, its curves from iteration 0, the viewer, the .rrd, /docs) with every
-request to another host blocked and recorded; the curves and the results table are checked
-from the page's own pixels and cells, the viewer's point clouds from a screenshot against its
-empty scene. Screenshots go to a temporary folder, or to ``$STREP_SCREENSHOTS`` when set (the
-README's come from the default 1000-iteration run instead: see docs/viewer.md).
+(the preset comparison, its curves from iteration 0, a reload, the viewer, the .rrd, /docs,
+/redoc) with every request to another host blocked and recorded; the curves and the results
+table are checked from the page's own pixels and cells, the viewer's point clouds from a
+screenshot against its empty scene. `test_classical_comparison_of_an_upload` runs icp and the
+pose graph on an uploaded file and checks the page in their terms (frames, markers, a log axis)
+and at 420 px. Screenshots (``browser-*.png``) go to a temporary folder, or to
+``$STREP_SCREENSHOTS`` when set (docs/screenshots; the README's come from the default
+1000-iteration run instead: see docs/viewer.md).
 
 Needs ``/usr/bin/chromium`` (``apt-get install chromium``; no browser is downloaded). Without
 it the tests are skipped, unless ``CI`` is set: then they fail.
@@ -18,6 +21,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import re
 import signal
 import socket
 import statistics
@@ -45,7 +49,7 @@ BROWSER_ARGS = [
 ]
 SAMPLE = "sample:sim2d"
 ITERATIONS = 30  # the page's default (1000 from scratch) takes minutes on 2 cores
-SERIES = [(0x2F, 0x6F, 0xDE), (0xE6, 0x7E, 0x22)]  # the page's first two curve colours (COLORS in app.js)
+SERIES = [(0x2F, 0x6F, 0xDE), (0xE6, 0x7E, 0x22)]  # the page's first two curve colours (static/js/state.js)
 FINAL = {"succeeded", "failed", "cancelled", "interrupted"}
 
 if not CHROMIUM.exists():
@@ -269,7 +273,14 @@ def test_newcomer_path_offline(server: Server, browser: Browser, tmp_path: Path)
     page.locator("#results tbody tr").nth(1).wait_for(timeout=10_000)
     assert "started" in page.inner_text("#message")
     api = httpx.Client(base_url=server.url, timeout=30)
-    cmp_id = page.evaluate("() => state.comparison")
+    cmp_id = page.evaluate("() => strepPage.comparison")
+    assert page.url.endswith(f"#comparison={cmp_id}")  # the address keeps the comparison (reloads)
+    # a second tab opened while it runs shows it too (before: an empty live panel)
+    other = context.new_page()
+    other.goto(server.url)
+    other.locator("#results tbody tr").nth(1).wait_for(timeout=10_000)
+    assert other.inner_text("#live-title") == "sim2d: strep vs strep-nolink"
+    other.close()
 
     def statuses() -> list[str]:
         return [j["status"] for j in api.get(f"/api/comparisons/{cmp_id}").json()["jobs"]]
@@ -307,7 +318,7 @@ def test_newcomer_path_offline(server: Server, browser: Browser, tmp_path: Path)
         # the y labels have the chart's left edge to themselves (before: a label lay on a curve)
         assert canvas_pixels(page, chart, SERIES, left=0.06) == [0, 0], chart
     # both ATE curves start at iteration 0, the starting poses (identity: the same ATE for both)
-    firsts = page.evaluate("() => [...state.follow].map((id) => state.jobs.get(id).ate[0])")
+    firsts = page.evaluate("() => strepPage.followed.map((f) => f.state.run.ate[0])")
     assert [f[0] for f in firsts] == [0, 0] and abs(firsts[0][1] - firsts[1][1]) < 1e-6, firsts
     assert page.inner_text("#legend").split() == ["strep", "strep-nolink"]
     rows = page.locator("#results tbody tr")
@@ -318,7 +329,12 @@ def test_newcomer_path_offline(server: Server, browser: Browser, tmp_path: Path)
     expected = [j["metrics"]["ate"] for j in api.get(f"/api/comparisons/{cmp_id}").json()["jobs"]]
     np.testing.assert_allclose(ates, expected, rtol=1e-2)  # shown with 3 significant digits
     done = [rows.nth(i).locator("td.stage").inner_text() for i in range(2)]
-    assert all(d.startswith("done: ATE ") and "→" in d for d in done), done
+    assert all(re.fullmatch(rf"done in [0-9.]+ s: {ITERATIONS} iterations, ATE 184 → [0-9.]+ px", d) for d in done), (
+        done
+    )
+    assert page.inner_text("#ate-caption") == "ATE (px) over iterations, from the starting poses (iteration 0)"
+    assert page.get_attribute("#loss-chart", "data-x") == f"{ITERATIONS} iterations"
+    assert page.locator("#frames-figure").is_hidden()
     page.wait_for_function("() => document.querySelector('#message').textContent.includes('finished')")
     assert page.inner_text("#message") == f"comparison {cmp_id} finished: 2 succeeded"
 
@@ -329,8 +345,18 @@ def test_newcomer_path_offline(server: Server, browser: Browser, tmp_path: Path)
         page.click("#comparison-rrd")
     rrd = Path(info.value.path())
     assert info.value.suggested_filename.endswith(".rrd") and rrd.read_bytes()[:4] == b"RRF2"
+    # a reload shows the same comparison, whole (before: an empty live panel)
+    page.reload()
+    page.wait_for_function(
+        """() => [...document.querySelectorAll('#results tbody td.status')]
+                 .filter((td) => td.textContent.trim() === 'succeeded').length === 2""",
+        timeout=30_000,
+    )
+    assert page.inner_text("#legend").split() == ["strep", "strep-nolink"]
+    assert min(canvas_pixels(page, "#ate-chart", SERIES)) > 100
+    page.locator("#comparison-rrd").wait_for(timeout=30_000)
     page.evaluate("() => document.activeElement && document.activeElement.blur()")
-    page.screenshot(path=shots / "page.png", full_page=True)
+    page.screenshot(path=shots / "browser-learned.png", full_page=True)
 
     # "Show in 3D viewer" opens the viewer and asks the service to show this comparison there
     with page.expect_response(lambda r: r.url.endswith("/view")) as answer, page.expect_popup() as popup:
@@ -347,7 +373,7 @@ def test_newcomer_path_offline(server: Server, browser: Browser, tmp_path: Path)
     viewer.get_by_text("finished: ").first.wait_for(timeout=30_000)
     time.sleep(2.0)
     shot = image(viewer.screenshot())
-    Image.fromarray(shot.astype(np.uint8)).save(shots / "viewer.png")
+    Image.fromarray(shot.astype(np.uint8)).save(shots / "browser-viewer.png")
     before, after = coloured_pixels(empty), coloured_pixels(shot)
     canvas = viewer.evaluate(
         "() => { const r = document.querySelector('canvas').getBoundingClientRect(); return [r.left, r.right]; }"
@@ -358,6 +384,9 @@ def test_newcomer_path_offline(server: Server, browser: Browser, tmp_path: Path)
     assert after > before + 5000, (before, after)
     assert left < 20 and right < 20, (left, right)  # before: the right map ran under the panel
     assert viewer.get_by_text(f"sim2d: strep vs strep-nolink [{cmp_id}]").count() >= 1
+    # the status line after the end (before: "1 run(s); replay: live")
+    assert viewer.get_by_text("finished: Play replays it, the Iteration slider steps through it").count() >= 1
+    assert viewer.get_by_text("run(s)").count() == 0
     slider = viewer.evaluate(
         """() => {
           const label = [...document.querySelectorAll('label, div, span')]
@@ -374,10 +403,94 @@ def test_newcomer_path_offline(server: Server, browser: Browser, tmp_path: Path)
     docs.goto(f"{server.url}/docs")
     docs.wait_for_selector(".swagger-ui .opblock", timeout=30_000)
     assert docs.locator(".swagger-ui .opblock").count() >= 10
-    docs.screenshot(path=shots / "docs.png")
+    docs.screenshot(path=shots / "browser-docs.png")
+    # ReDoc, its "API docs by Redocly" logo included (before: fetched from cdn.redoc.ly)
+    docs.goto(f"{server.url}/redoc")
+    docs.get_by_text("API docs by Redocly").wait_for(timeout=30_000)
+    docs.wait_for_load_state("networkidle")
     assert foreign == [], foreign  # no request left the machine
     api.close()
     context.close()
+
+
+LABEL_FITS_JS = """(sel) => {
+  const el = document.querySelector(sel);
+  const style = getComputedStyle(el);
+  const ctx = document.createElement("canvas").getContext("2d");
+  ctx.font = `${style.fontWeight} ${style.fontSize} ${style.fontFamily}`;
+  const room = el.clientWidth - parseFloat(style.paddingLeft) - parseFloat(style.paddingRight) - 20;  // the arrow
+  return [...el.options].filter((o) => ctx.measureText(o.text).width > room).map((o) => o.text);
+}"""
+
+
+def test_classical_comparison_of_an_upload(server: Server, browser: Browser, tmp_path: Path) -> None:
+    """icp and the pose graph on an uploaded file: the page speaks in frames, not iterations
+    (before: "no iterations yet" over the loss chart, an x axis of 128 iterations where icp
+    showed 64/64, a linear axis flattening 0.1 px under 56 px, "from the starting poses
+    (iteration 0)" over curves starting at frame 10, "done" alone, the upload's id for its
+    name, labels cut, and sideways scrolling at 420 px)."""
+    from strep_core.io.npz import write_npz
+    from strep_core.runner import load_input
+
+    shots = Path(os.environ.get("STREP_SCREENSHOTS", tmp_path))
+    shots.mkdir(parents=True, exist_ok=True)
+    upload = tmp_path / "corridor-scans.npz"
+    write_npz(load_input("sample:sim2d-small"), upload)
+    page = browser.new_page(viewport={"width": 1280, "height": 900})
+    page.goto(server.url)
+    page.wait_for_selector("#methods input")
+    assert page.evaluate(LABEL_FITS_JS, "#start-mode") == []  # every start's label whole
+    page.click("#upload-box summary")
+    page.set_input_files("#upload-file", str(upload))
+    page.click("#upload-button")
+    page.wait_for_function("() => document.querySelector('#message').textContent.startsWith('uploaded')")
+    assert page.evaluate(LABEL_FITS_JS, "#sequence") == []
+    for box in page.locator("#methods input").all():
+        if (box.get_attribute("value") in ("icp", "multiway")) != box.is_checked():
+            box.click()
+    page.click("#start")
+    page.wait_for_function(
+        """() => [...document.querySelectorAll('#results tbody td.status')]
+                 .filter((td) => td.textContent.trim() === 'succeeded').length === 2""",
+        timeout=120_000,
+    )
+    page.locator("#comparison-rrd").wait_for(timeout=30_000)
+    title = page.inner_text("#live-title")
+    assert title.startswith("corridor-scans") and title.endswith(": icp vs multiway"), title
+    sequences = page.locator("#jobs tbody td:nth-child(2)").all_inner_texts()
+    assert sequences[:2] and all(s.startswith("corridor-scans") for s in sequences[:2]), sequences
+    assert "seq_" not in page.inner_text("body")
+    # classical methods: no loss chart, ATE over the 64 frames on a log axis, markers
+    assert page.locator("#loss-figure").is_hidden() and page.locator("#ate-figure").is_hidden()
+    assert "no iterations" not in page.inner_text("body")
+    assert page.get_attribute("#frames-chart", "data-x") == "64 frames"
+    assert page.get_attribute("#frames-chart", "data-y") == "log"  # 56 px guess, 0.1 px results
+    caption = page.inner_text("#frames-caption")
+    assert caption.startswith("ATE (px, log scale) of the frames placed") and "iteration" not in caption
+    assert min(canvas_pixels(page, "#frames-chart", SERIES)) > 30
+    rows = page.locator("#results tbody tr")
+    progress = [rows.nth(i).locator("td.progress").inner_text() for i in range(2)]
+    assert progress == ["64 / 64 frames", "64 / 64 frames"], progress
+    stages = [rows.nth(i).locator("td.stage").inner_text() for i in range(2)]
+    assert all(re.fullmatch(r"done in [0-9.]+ s: 64 frames, ATE 56 → 0\.[0-9]+ px", s) for s in stages), stages
+    # the results table fits its panel at 1280 px: every file link shows (before: cut off)
+    assert page.evaluate(
+        "() => { const w = document.querySelector('#results').parentElement; return w.scrollWidth <= w.clientWidth; }"
+    )
+    page.evaluate("() => document.activeElement && document.activeElement.blur()")
+    page.screenshot(path=shots / "browser-classical.png", full_page=True)
+
+    # the same comparison at 420 px (a phone): whole after a load, no sideways scroll
+    narrow = browser.new_page(viewport={"width": 420, "height": 800})
+    narrow.goto(page.url)
+    narrow.wait_for_function("() => document.querySelectorAll('#results tbody td.status').length === 2")
+    narrow.wait_for_function("() => document.querySelector('#frames-chart').dataset.x === '64 frames'")
+    width = narrow.evaluate("() => [document.documentElement.scrollWidth, window.innerWidth]")
+    assert width[0] <= width[1], width
+    assert narrow.evaluate(LABEL_FITS_JS, "#start-mode") == []
+    narrow.screenshot(path=shots / "browser-narrow.png", full_page=True)
+    narrow.close()
+    page.close()
 
 
 def test_downloads_send_the_token(tmp_path: Path, browser: Browser) -> None:

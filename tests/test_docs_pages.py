@@ -50,17 +50,30 @@ def test_favicon(client: TestClient) -> None:
     assert client.get("/static/favicon.svg").content == svg.read_bytes()
 
 
-def test_the_page_shows_the_service_defaults_and_sends_none() -> None:
+def test_the_page_shows_the_service_defaults_and_sends_none(client: TestClient) -> None:
     """One default iteration count everywhere (before: the page sent 150, the CLI used 300): the
-    page's placeholders are the config's defaults, and it sends a count only when one is typed."""
+    page shows the service's defaults (GET /api/starts, no copy in the page), and sends a count
+    only when one is typed."""
     from strep_core.config import RunConfig
 
     root = Path(__file__).resolve().parents[1] / "static"
-    html = (root / "index.html").read_text()
-    shown = dict(re.findall(r'<option value="([a-z-]+)" data-iterations="(\d+)"', html))
+    starts = client.get("/api/starts").json()
     expected = {start: RunConfig.build(start=start).optim.iterations for start in ("scratch", "pose-graph")}
-    assert {k: int(v) for k, v in shown.items()} == expected
-    assert re.search(r'<option value="scratch"[^>]* selected>', html)  # the first preset: from scratch
+    assert {s["name"]: s["iterations"] for s in starts["data"]} == expected
+    assert starts["default"] == "scratch"  # the first preset: from scratch
+    html = (root / "index.html").read_text()
+    assert "data-iterations" not in html
     assert re.search(r'<input type="number" id="iterations"(?![^>]*value=)[^>]*>', html)  # empty by default
-    js = (root / "app.js").read_text()
+    js = (root / "js" / "main.js").read_text()
     assert "if (iterations != null) optim.iterations = iterations;" in js
+
+
+def test_redoc_loads_no_logo_from_a_cdn(client: TestClient) -> None:
+    """ReDoc 2 shows "API docs by Redocly" with a logo from cdn.redoc.ly; the served bundle
+    points it at the local favicon (before: the one request /redoc made to another host)."""
+    bundle = client.get("/docs-assets/redoc.standalone.js")
+    assert bundle.status_code == 200 and "javascript" in bundle.headers["content-type"]
+    assert "cdn.redoc.ly" not in bundle.text and 'src:"/favicon.ico"' in bundle.text
+    for page in ("/docs", "/redoc"):
+        html = client.get(page).text
+        assert not re.findall(r"(?:src|href)=[\"'](?:https?:)?//", html), page

@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 
 from strep_core.config import RunConfig
-from strep_core.events import PROGRESS_KINDS, Event, ListSink, ResultEvent, StageEvent, progress_events
+from strep_core.events import PROGRESS_KINDS, ListSink, ResultEvent, StageEvent, progress_events
 from strep_core.runner import load_input, run
-from strep_core.runstate import PAGE_RULES, REDUCERS, History, RunState, apply
+from strep_core.runstate import REDUCERS, History, RunState, apply
+from strep_core.runview import figure, run_view
 
 
 @pytest.fixture(scope="module")
@@ -42,57 +43,61 @@ def test_every_event_kind_has_one_reducer() -> None:
     assert set(REDUCERS) == PROGRESS_KINDS == {"start", "stage", "iteration", "result"}
 
 
-def _page_entry(events: list) -> dict:
-    """The page's entry of a job after ``events`` (as JSON, as the stream carries them), by the rules
-    of `PAGE_RULES`: the same interpreter as ``applyRules`` in static/app.js."""
-
-    def pick(ev: dict, path: str):
-        for key in path.split("."):
-            ev = None if ev is None else ev.get(key)
-        return ev
-
-    entry: dict = {"loss": [], "ate": []}
-    for event in events:
-        ev = event.model_dump(mode="json")
-        for r in PAGE_RULES.get(ev["kind"], []):
-            if any(pick(ev, path) != want for path, want in r.get("if", {}).items()):
-                continue
-            value = (
-                r["value"]
-                if "value" in r
-                else [pick(ev, p) for p in r["from"]]
-                if r.get("push")
-                else pick(ev, r["from"])
-            )
-            if r.get("push"):
-                if all(v is not None for v in value):
-                    entry[r["push"]].append(value)
-            elif not (r.get("skip_null") and value is None):
-                entry[r["set"]] = value
-    return entry
+@pytest.fixture(scope="module")
+def multiway_events() -> list:
+    sink = ListSink()
+    run(load_input("sample:sim2d-small"), RunConfig(method="multiway"), sink=sink)
+    return sink.events
 
 
-def test_the_page_rules_name_event_fields_and_agree_with_the_reducer(strep_events) -> None:
-    """The page's rules (served to static/app.js) read fields the events have, and give the
-    figures `apply` gives: the planned and done iterations, start ATE, curves and metrics."""
-    classes = {cls.model_fields["kind"].default: cls for cls in Event.__args__[0].__args__}
-    assert set(PAGE_RULES) <= set(REDUCERS)
-    for kind, rules in PAGE_RULES.items():
-        for r in rules:
-            paths = r.get("from", [])
-            for path in [*([paths] if isinstance(paths, str) else paths), *r.get("if", {})]:
-                assert path.split(".")[0] in classes[kind].model_fields, (kind, path)
-    entry = _page_entry(strep_events)
-    state, _ = _reduce(strep_events)
-    assert entry["started"] and (entry["total"], entry["iteration"]) == (state.total, state.iteration) == (12, 12)
-    assert entry["startAte"] == state.start_ate and entry["metrics"] == state.metrics
-    xs, ys = state.history.curves()["loss/total"]
-    assert entry["loss"] == [[int(x), y] for x, y in zip(xs, ys, strict=True)]
+def test_a_learned_run_is_drawn_in_iterations_from_its_starting_poses(strep_events) -> None:
+    state, _ = _reduce(strep_events, keep_poses=False)
+    assert state.poses is None and state.frames == 64 and state.unit == "px"
+    view = run_view(state, learned=True, status="succeeded")
+    assert (view.axis, view.done, view.total, view.progress) == ("iterations", 12, 12, "12 / 12 iterations")
     xs, ys = state.history.curves()["ate"]
-    assert [it for it, _ in entry["ate"]] == list(xs)
-    # the last snapshot's ATE is the result's (the final pass), the page keeps the last event's
-    assert [a for _, a in entry["ate"]][:-1] == list(ys[:-1]) and entry["ate"][-1][1] == pytest.approx(ys[-1], rel=1e-2)
-    assert entry["lastAte"] == entry["ate"][-1][1] and entry["stage"] == "init:multiway"
+    assert view.ate == list(zip(xs, ys, strict=True)) and view.ate[0][0] == 0
+    assert [x for x, _ in view.loss] == [4, 8, 12] and view.ate_start is None and view.ate_end is None
+    start, end = state.start_ate, state.metrics["ate"]
+    assert view.stage_text.startswith("done in ")
+    assert view.stage_text.endswith(f": 12 iterations, ATE {start:.3g} → {end:.3g} px"), view.stage_text
+    # while it runs: the warm start, then the optimisation from its ATE
+    state, texts = RunState(), []
+    for ev in strep_events[:-1]:
+        texts.append(run_view(apply(state, ev), learned=True, status="running").stage_text)
+    assert texts[:3] == [
+        "warm start (multiway)…",
+        "warm start (multiway)…",
+        f"warm start (multiway) done: ATE {start:.3g} px",
+    ]
+    assert texts[-1] == f"optimising from ATE {start:.3g} px"
+    assert run_view(state, learned=True, status="failed").stage_text == "failed at 12 / 12 iterations"
+    # long runs read in whole seconds (before: "done in 1.1e+03 s")
+    assert figure(1098.8) == "1099" and figure(0.4561) == "0.456" and figure(184.2) == "184"
+
+
+def test_a_pose_graph_is_drawn_in_frames_with_its_result_as_one_step(multiway_events) -> None:
+    """The x axis counts the 64 frames (not the 128 events' iterations); the loop-closure pass
+    and the graph's optimisation are one step to the end marker; the start marker is the guess."""
+    state, _ = _reduce(multiway_events, keep_poses=False)
+    assert state.total == 128
+    view = run_view(state, learned=False, status="succeeded")
+    assert (view.axis, view.done, view.total, view.progress) == ("frames", 64, 64, "64 / 64 frames")
+    assert view.loss == [] and [x for x, _ in view.ate] == [10, 20, 30, 40, 50, 60]
+    assert view.ate_start == (0, pytest.approx(state.metrics["initial_ate"]))
+    assert view.ate_end == (64, pytest.approx(state.metrics["ate"]))
+    assert view.ate_start[1] / view.ate_end[1] > 100  # decades apart: the page draws a log axis
+    assert view.stage_text.endswith(f"64 frames, ATE 56 → {state.metrics['ate']:.3g} px")
+    # during the second pass the progress says so, in frames
+    state = RunState()
+    for ev in multiway_events:
+        apply(state, ev)
+        if ev.kind == "iteration" and ev.iteration == 80:
+            mid = run_view(state, learned=False, status="running")
+            assert (mid.progress, mid.stage_text) == (
+                "16 / 64 frames (pass 2 of 2)",
+                "pass 2 of 2 over the placed frames",
+            )
 
 
 def test_a_strep_run_reduces_to_its_result(strep_events) -> None:

@@ -493,3 +493,71 @@ def test_an_unknown_event_kind_changes_nothing_shown(viewer, seq, icp_events) ->
     assert job["events"] == 3 and job["history"] == 1 and job["iteration"] == icp_events[1].iteration
     assert "123" not in viewer._jobs["noted"].nodes["/jobs/noted/label"].text
     viewer.remove_job("noted")
+
+
+def test_a_comparisons_panels_follow_its_methods_order(viewer, seq, icp_events) -> None:
+    """Before: panels and colours in the order the jobs arrived (the page's reversed, often)."""
+    identity = ListSink()
+    run(seq, RunConfig(method="identity"), sink=identity)
+    title = "sim2d-small: icp vs identity"
+    viewer.load_job("ord-id", "identity", seq, identity.events, group="ord", group_title=title, select=True)
+    viewer.load_job("ord-icp", "icp", seq, [ev.model_dump() for ev in icp_events], group="ord", group_title=title)
+    assert viewer.wait_idle(10)
+    keys = {j: viewer.jobs()[j]["key"] for j in ("ord-icp", "ord-id")}
+    x = {j: float(np.asarray(viewer.scene_node(f"/jobs/{k}").position)[0]) for j, k in keys.items()}
+    assert x["ord-icp"] < x["ord-id"]
+    assert [viewer._jobs[j].index for j in ("ord-icp", "ord-id")] == [0, 1]  # the page's colours' order
+    folders = [viewer._jobs[j].nodes["gui/folder"].order for j in ("ord-icp", "ord-id")]
+    assert folders[0] < folders[1], folders  # the side panel lists them in the same order
+    # finished: the status line says so (before: "N run(s); replay: live"), the figures are labelled
+    assert viewer.gui.status.content == "finished: Play replays it, the Iteration slider steps through it"
+    text = viewer._jobs["ord-icp"].nodes["gui/text"].content
+    m = icp_events[-1].metrics
+    assert f"finished: ATE {m['ate']:.3g} px, point L2 {m['point_l2']:.3g} px, time {m['wall_seconds']:.3g} s" in text
+    assert "wall_seconds" not in text and "point_l2" not in text
+    viewer.remove_job("ord-id")
+    viewer.remove_job("ord-icp")
+
+
+def test_the_total_loss_is_not_hidden_under_an_equal_term(viewer, seq) -> None:
+    """The total is drawn first and wider, so a term equal to it (the only one on) leaves its
+    edges showing (before: both 2 px, the chamfer curve drawn over the total's)."""
+    gt = pose_list(g.pose_to_vector(seq.poses))
+    sink = viewer.sink("equal-terms", "strep", seq, select=True)
+    for i in (1, 2):
+        time.sleep(CHART_INTERVAL)
+        sink.emit(
+            IterationEvent(
+                iteration=i, total=2, elapsed=0.1 * i, losses={"total": 0.1 / i, "chamfer": 0.1 / i}, poses=gt
+            )
+        )
+    assert viewer.wait_idle(5)
+    job = viewer._jobs["equal-terms"]
+    assert job.chart_series[:2] == ("loss/total", "loss/chamfer")
+    total, chamfer = job.chart.series[1], job.chart.series[2]
+    assert total["width"] >= 2 * chamfer["width"], (total, chamfer)
+    viewer.remove_job("equal-terms")
+
+
+def test_the_viewers_modules_import_each_other_one_way() -> None:
+    """No circle in app/viewer, counting imports made for annotations (before: controls named
+    ViewerServer, which imports the pusher, which imports the controls)."""
+    import ast
+    from pathlib import Path
+
+    folder = Path(__file__).resolve().parents[1] / "app" / "viewer"
+    graph: dict[str, set[str]] = {}
+    for path in folder.glob("*.py"):
+        deps = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("app.viewer"):
+                names = [node.module.removeprefix("app.viewer").lstrip(".")] if node.module != "app.viewer" else []
+                names += [a.name for a in node.names if node.module == "app.viewer"]
+                deps |= {n for n in names if (folder / f"{n}.py").exists()}
+        graph[path.stem] = deps - {path.stem}
+
+    def reaches(start: str, goal: str, seen: set[str]) -> bool:
+        return any(d == goal or (d not in seen and reaches(d, goal, seen | {d})) for d in graph.get(start, ()))
+
+    circles = sorted(m for m in graph if m != "__init__" and reaches(m, m, {m}))
+    assert not circles, {m: sorted(graph[m]) for m in circles}

@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends
 
 from app.api.deps import require_token
-from app.api.routes import comparisons, health, jobs, sequences
+from app.api.routes import comparisons, health, jobs, sequences, state
 from app.models import ErrorPublic
 
 api_router = APIRouter(
@@ -23,3 +23,4 @@ api_router.include_router(health.router)
 api_router.include_router(sequences.router)
 api_router.include_router(jobs.router)
 api_router.include_router(comparisons.router)
+api_router.include_router(state.router)

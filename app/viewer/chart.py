@@ -28,6 +28,12 @@ def loss_exponent(curves: list[np.ndarray]) -> int:
     return e if e < -2 or e > 2 else 0
 
 
+def series_width(name: str) -> float:
+    """The total loss is drawn first and wider: a term equal to it (the only one on) lies on
+    top of it, and the total still shows at its edges instead of hiding under it."""
+    return 5.0 if name == "loss/total" else 1.5
+
+
 def update_chart(gui: viser.GuiApi, job: Job, lock: threading.RLock) -> None:
     """Redraw ``job``'s chart (new data in place, or a new chart when its series changed).
 
@@ -61,7 +67,7 @@ def update_chart(gui: viser.GuiApi, job: Job, lock: threading.RLock) -> None:
             viser.uplot.Series(
                 label=n.removeprefix("loss/"),
                 stroke=CURVE_COLORS[i % len(CURVE_COLORS)],
-                width=2,
+                width=series_width(n),
                 scale="ate" if n == "ate" else "loss",
             )
         )

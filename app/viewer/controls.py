@@ -9,17 +9,41 @@ controls back with `Controls.apply`.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import viser
 
-from app.viewer import panel
-from app.viewer.panel import Job
-
-if TYPE_CHECKING:
-    from app.viewer.viewer import ViewerServer
+from app.viewer.panel import Job, show
 
 NO_RUN = "(no runs yet)"
+
+
+class Target(Protocol):
+    """What the controls change: the `ViewerServer`'s state (named here, not imported, so the
+    viewer, its pusher and the controls import one another in one direction only)."""
+
+    def _pick_group(self, group: str) -> None: ...
+
+    def _play(self, playing: bool) -> None: ...
+
+    def set_replay(
+        self, *, live: bool | None = None, iteration: int | None = None, playing: bool | None = None
+    ) -> None: ...
+
+    def set_display(self, *, show_gt: bool | None = None, point_scale: float | None = None) -> None: ...
+
+
+def status_text(ui: dict[str, Any]) -> str:
+    """The status line: what the shown run is doing and what the replay controls will do."""
+    if not ui["groups"]:
+        return "no runs yet"
+    if ui["playing"]:
+        return f"replaying: iteration {ui['replay_it']}"
+    if not ui["live"]:
+        return f"paused at iteration {ui['replay_it']}"
+    if ui.get("finished"):
+        return "finished: Play replays it, the Iteration slider steps through it"
+    return "following the run live"
 
 
 def _set_value(handle: Any, value: Any) -> None:
@@ -30,7 +54,7 @@ def _set_value(handle: Any, value: Any) -> None:
 class Controls:
     """The control panel of ``viewer`` (docked on the right, beside the scene)."""
 
-    def __init__(self, gui: viser.GuiApi, viewer: ViewerServer) -> None:
+    def __init__(self, gui: viser.GuiApi, viewer: Target) -> None:
         gui.configure_theme(control_width="large", show_share_button=False)
         gui.main_panel.dock_right()  # beside the scene, not over it (the camera frames the rest)
         self.run = gui.add_dropdown("Run", (NO_RUN,), initial_value=NO_RUN)
@@ -106,15 +130,14 @@ class Controls:
             _set_value(self.run, NO_RUN)
         for job in jobs:
             if job.built:
-                panel.show(job, visible=job.group == selected, show_gt=ui["show_gt"], point_scale=ui["point_scale"])
+                show(job, visible=job.group == selected, show_gt=ui["show_gt"], point_scale=ui["point_scale"])
         _set_value(self.live, ui["live"])
         self.iteration.max = max(int(ui["max_it"]), 1)
         shown_it = ui["latest_it"] if ui["live"] else ui["replay_it"]  # never a value left from another run
         _set_value(self.iteration, min(int(shown_it), self.iteration.max))
         _set_value(self.ground_truth, ui["show_gt"])
         _set_value(self.point_size, ui["point_scale"])
-        mode = "live" if ui["live"] else ("playing" if ui["playing"] else "paused")
-        self.status.content = f"{len(ui['groups'])} run(s); replay: {mode}"
+        self.status.content = status_text(ui)
 
     def follow(self, max_it: int, latest: int) -> None:
         """Live: the iteration slider follows the newest iteration (totals become known after

@@ -36,6 +36,7 @@ from app.viewer.scene import (
     union_bbox,
 )
 from strep_core.runstate import RunState, Snapshot, stage_line
+from strep_core.runview import figure
 
 GT_COLOR = (120, 120, 120)
 TRAJECTORY_COLORS = [(230, 80, 40), (40, 120, 230), (40, 170, 90), (170, 70, 200), (220, 170, 30)]
@@ -79,6 +80,9 @@ class Job:
 
     def point_size(self, point_scale: float) -> float:
         return 0.3 * self.scene.marker_scale() * point_scale
+
+
+FOLDER_ORDER = 1_000_000.0  # past every control's automatic order
 
 
 def build(
@@ -140,7 +144,8 @@ def build(
             thickness_units="screen",
             visible=show_gt,
         )
-    with server.gui.add_folder(job.label, visible=visible) as folder:
+    # below the controls, in the group's order (the page's), whichever job was built first
+    with server.gui.add_folder(job.label, visible=visible, order=FOLDER_ORDER + job.index) as folder:
         job.nodes["gui/folder"] = folder
         job.nodes["gui/text"] = server.gui.add_markdown(f"**{job.label}**: waiting for events")
     job.built = True
@@ -227,6 +232,20 @@ def draw(job: Job, snap: Snapshot, *, max_pose_markers: int) -> bool:
     return False
 
 
+#: the result's figures on the status line: metrics key -> (label, unit: "seq" the sequence's)
+RESULT_FIGURES = {"ate": ("ATE", "seq"), "point_l2": ("point L2", "seq"), "wall_seconds": ("time", "s")}
+
+
+def result_line(metrics: dict[str, Any], unit: str) -> str:
+    """``"ATE 134 px, point L2 206 px, time 1099 s"``: labelled, 3 significant digits, units."""
+    parts = []
+    for key, (label, kind) in RESULT_FIGURES.items():
+        v = metrics.get(key)
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
+            parts.append(f"{label} {figure(v)} {unit if kind == 'seq' else kind}".rstrip())
+    return ", ".join(parts) or "no figures"
+
+
 def update_text(job: Job, snap: Snapshot | None) -> None:
     """The job's figures in its GUI folder and on its label in the scene."""
     state = job.state
@@ -236,16 +255,14 @@ def update_text(job: Job, snap: Snapshot | None) -> None:
         lines.append(f"iteration {snap.iteration}{total}, {snap.elapsed:.1f} s")
         terms = {k: v for k, v in snap.losses.items() if v != 0.0}  # a term that is off reports 0
         if terms:
-            lines.append(", ".join(f"{k} {v:.4g}" for k, v in terms.items()))
+            lines.append("loss: " + ", ".join(f"{k} {v:.3g}" for k, v in terms.items()))
         if snap.ate is not None:
-            lines.append(f"ATE {snap.ate:.4g} {job.scene.unit}")
+            lines.append(f"ATE {snap.ate:.3g} {job.scene.unit}")
     stage = stage_line(state.stage, snap, start_ate=state.start_ate, unit=job.scene.unit, finished=state.finished)
     if stage:
         lines.append(stage)
     if state.finished:
-        m = state.metrics
-        parts = [f"{k} {m[k]:.4g}" for k in ("ate", "point_l2", "wall_seconds") if isinstance(m.get(k), (int, float))]
-        lines.append("finished: " + ", ".join(parts))
+        lines.append("finished: " + result_line(state.metrics, job.scene.unit))
     job.nodes["gui/text"].content = "  \n".join(lines)
     label = job.label if snap is None else f"{job.label}  it {snap.iteration}"
     if snap is not None and snap.ate is not None:

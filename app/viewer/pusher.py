@@ -138,6 +138,7 @@ class Pusher:
                 ),
                 "labels": {j.job_id: j.label for j in self._jobs.values()},
                 "latest_it": self._group_max_iteration(),
+                "finished": bool(self._selected_jobs()) and all(j.state.finished for j in self._selected_jobs()),
                 "frame_clients": set(self._unframed_clients),
             }
             self._unframed_clients.clear()

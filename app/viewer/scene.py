@@ -45,15 +45,6 @@ def poses_to_matrices(pose_vectors: Any) -> np.ndarray:
     return g.to_se3(g.pose_from_vector(v))
 
 
-def matrices_to_vectors(poses: np.ndarray, dims: int) -> np.ndarray:
-    """``(K, 4, 4)`` -> pose vectors ``(K, 3)`` (``dims == 2``: x, y, yaw) or ``(K, 6)``."""
-    poses = np.asarray(poses, dtype=np.float64)
-    if dims == 2:
-        yaw = np.arctan2(poses[:, 1, 0], poses[:, 0, 0])
-        return np.concatenate([poses[:, :2, 3], yaw[:, None]], axis=1)
-    return g.se3_to_vector(poses)
-
-
 def rotations_to_wxyz(rot: np.ndarray) -> np.ndarray:
     """Unit quaternions ``(..., 4)`` as ``(w, x, y, z)`` (viser's order) of rotations ``(..., 3, 3)``."""
     xyzw = g.rotation_to_quaternion(rot)

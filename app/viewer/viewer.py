@@ -70,6 +70,13 @@ class JobSink:
         return bool(job and job.state.finished)
 
 
+def member_rank(title: str | None, label: str, arrived: int) -> int:
+    """A job's place in its group: its method's place in the title ``"<sequence>: a vs b"``
+    (the comparison's order, as the page lists it), else after the methods named there."""
+    names = (title or "").rpartition(": ")[2].split(" vs ")
+    return names.index(label) if label in names else len(names) + arrived
+
+
 class ViewerServer(Pusher):
     """A viser server showing jobs live and side by side; see the module docstring.
 
@@ -197,6 +204,8 @@ class ViewerServer(Pusher):
                 self._groups[old.group].remove(job_id)
                 self._removed.append(old)
             members = self._groups.setdefault(group, [])
+            if group_title:
+                self._group_titles[group] = group_title
             job = Job(
                 job_id=job_id,
                 label=label,
@@ -204,12 +213,11 @@ class ViewerServer(Pusher):
                 key=self._unique_key(job_id),
                 scene=scene,
                 state=RunState(history=History(self.settings.history_limit), pose_dtype=np.float32),
-                index=len(members),
+                index=member_rank(self._group_titles.get(group), label, len(members)),
             )
-            members.append(job_id)
+            # the group's panels (left to right) and colours in its methods' order, not arrival's
+            members.insert(sum(self._jobs[m].index <= job.index for m in members if m in self._jobs), job_id)
             self._jobs[job_id] = job
-            if group_title:
-                self._group_titles[group] = group_title
             if select or (select is None and self._selected is None):
                 self._selected = group
             self._layout_dirty.add(group)

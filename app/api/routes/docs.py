@@ -4,8 +4,9 @@ at ``/redoc``, and the favicon.
 FastAPI's own pages load their scripts from a CDN (cdn.jsdelivr.net), so without internet
 ``/docs`` is blank. Here the scripts and styles come from the ``fastapi-offline`` package
 (installed with this one; it ships Swagger UI 5 and ReDoc 2 as files), mounted under
-``/docs-assets``; ReDoc is told not to fetch Google Fonts. No page of the service asks any
-other host for anything.
+``/docs-assets``; ReDoc is told not to fetch Google Fonts, and its bundle is served with the
+"API docs by Redocly" logo pointed at the local favicon (ReDoc 2 loads it from cdn.redoc.ly and
+has no option to leave it out). No page of the service asks any other host for anything.
 """
 
 from __future__ import annotations
@@ -15,13 +16,14 @@ from pathlib import Path
 
 from fastapi import FastAPI
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagger_ui_oauth2_redirect_html
-from fastapi.responses import FileResponse, HTMLResponse
+from fastapi.responses import FileResponse, HTMLResponse, Response
 from fastapi.staticfiles import StaticFiles
 
 log = logging.getLogger("strep.service")
 
 ASSETS = "/docs-assets"
 FAVICON = Path(__file__).resolve().parents[3] / "static" / "favicon.svg"
+REDOC_LOGO = "https://cdn.redoc.ly/redoc/logo-mini.svg"  # in ReDoc 2's menu footer, unconditionally
 
 
 def assets_dir() -> Path | None:
@@ -57,6 +59,12 @@ def install_docs(app: FastAPI) -> None:
             return HTMLResponse(note)
 
         return
+    redoc_js = (folder / "redoc.standalone.js").read_text(encoding="utf-8").replace(REDOC_LOGO, favicon)
+
+    @app.get(f"{ASSETS}/redoc.standalone.js", include_in_schema=False)
+    def redoc_bundle() -> Response:  # before the mount, which would serve the file as shipped
+        return Response(redoc_js, media_type="text/javascript; charset=utf-8")
+
     app.mount(ASSETS, StaticFiles(directory=folder), name="docs-assets")
     title = f"{app.title} - API"
     openapi_url = app.openapi_url or "/openapi.json"

@@ -1,4 +1,4 @@
-"""Liveness, the list of registration methods and the page's rules for event kinds."""
+"""Liveness and the list of registration methods."""
 
 from __future__ import annotations
 
@@ -7,12 +7,8 @@ from fastapi.concurrency import run_in_threadpool
 
 import strep_core
 from app.api.deps import ServiceDep
-from app.models import EventRulesPublic, HealthPublic, MethodPublic, MethodsPublic
+from app.models import HealthPublic, MethodPublic, MethodsPublic
 from strep_core.methods import available
-from strep_core.runstate import PAGE_RULES
-
-# the job store's own records (queued, running, finished...), beside the run's events
-STATUS_RULES = [{"set": "status", "from": "status"}, {"set": "error", "from": "error", "skip_null": True}]
 
 router = APIRouter(tags=["service"])
 
@@ -35,12 +31,3 @@ async def health(service: ServiceDep) -> HealthPublic:
 async def list_methods() -> MethodsPublic:  # the registry in memory: no thread needed
     data = [MethodPublic(name=m.name, description=m.description, learned=m.learned) for m in available().values()]
     return MethodsPublic(data=data, count=len(data))
-
-
-@router.get(
-    "/events/rules",
-    response_model=EventRulesPublic,
-    summary="How each event kind of a job's stream changes the page's view of the job",
-)
-async def event_rules() -> EventRulesPublic:
-    return EventRulesPublic(rules={**PAGE_RULES, "status": STATUS_RULES})
