@@ -203,8 +203,8 @@ def case_config(case: BenchCase, method: str, quick: bool, seq: Sequence) -> Run
         optim = {"iterations": QUICK_SCRATCH_ITERATIONS} if quick else {}
         return RunConfig.build(method=method, start="scratch", optim=optim, data=case.data)
     cfg = method_config(method, quick, seq)
-    if case.init is not None:
-        cfg = cfg.model_copy(update={"init": case.init})
+    if case.init is not None:  # from identity with the warm start's settings (start auto would be scratch)
+        cfg = cfg.model_copy(update={"init": case.init, "start": "pose-graph"})
     if case.data:
         cfg = cfg.model_copy(update={"data": type(cfg.data).model_validate(case.data)})
     if case.iterations is not None and cfg.optim.iterations > case.iterations:

@@ -184,7 +184,7 @@ class JobService:
                 "sequence_id": sequence_id,
                 "comparison_id": comparison_id,
                 "method": cfg.method,
-                "config": cfg.model_dump_json(),
+                "config": cfg.model_dump_json(exclude_unset=True),  # the request: resolved by the run
                 "created_at": created,
             }
             for cfg in configs
@@ -294,6 +294,8 @@ class JobService:
                 elif isinstance(msg, DoneMessage):
                     w.done = True
                     fields: tuple[tuple[str, Any], ...] = (("metrics", msg.metrics), ("files", msg.files))
+                    if msg.config is not None:  # the request becomes what ran (its config.json)
+                        fields += (("config", self._public_config(w.job_id, msg.config)),)
                     items.append(StatusChange(w.job_id, ("running",), msg.status, msg.error, fields))
                 elif isinstance(msg, PidMessage):  # a Ray worker's process, known once its actor has started
                     self.store.set_job_fields(w.job_id, pid=msg.pid)
@@ -304,6 +306,13 @@ class JobService:
             w.eof = True
             if w.proc.is_alive():
                 w.proc.kill()
+
+    def _public_config(self, job_id: str, resolved: dict[str, Any]) -> dict[str, Any]:
+        """The resolved config as the API shows it: ``from_model`` as requested (``job:<id>``),
+        not the server path the worker read."""
+        job = self.store.get_job(job_id)
+        requested = (job or {}).get("config", {}).get("from_model")
+        return {**resolved, "from_model": requested} if resolved.get("from_model") else resolved
 
     def _store_and_publish(self, items: Sequence[EventIn | StatusChange]) -> list[StoredEvent]:
         stored = self.store.apply(items)
@@ -420,7 +429,7 @@ class JobService:
             source=str(path),
             selection=selection,
             sequence_name=self.sequences.name_of(job["sequence_id"]),  # not "sequence", the stored name
-            config=config.model_dump_json(),
+            config=config.model_dump_json(exclude_unset=True),
             scene_path=str(self.scene_path(job_id)),
             tmp_dir=str(self.tmp_results / job_id),
             out_dir=str(self.result_dir(job_id)),

@@ -55,6 +55,7 @@ class DoneMessage(BaseModel):
     error: str | None = None
     metrics: dict[str, Any] | None = None
     files: list[str] = Field(default_factory=list)
+    config: dict[str, Any] | None = Field(default=None, description="the resolved `RunConfig` (its config.json)")
 
 
 class PidMessage(BaseModel):

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib
+import json
 import math
 import multiprocessing
 import multiprocessing.connection
@@ -222,7 +223,8 @@ def run_job(spec: JobSpec, conn: multiprocessing.connection.Connection, cancel: 
             result = run_input(read, config, out_dir=tmp_dir, sink=PipeSink(conn), sinks=job_sinks, cancel=cancel)
             files = sorted({*result.files, *([RECORDING] if (tmp_dir / RECORDING).is_file() else [])})
             os.replace(tmp_dir, spec.out_dir)  # all files appear at once, never half-written
-            message = DoneMessage(status="succeeded", metrics=_finite(result.metrics), files=files)
+            resolved = json.loads(result.config.model_dump_json())
+            message = DoneMessage(status="succeeded", metrics=_finite(result.metrics), files=files, config=resolved)
         except Cancelled as exc:
             message = DoneMessage(status="cancelled", error=str(exc) or "cancelled")
         except StrepError as exc:
