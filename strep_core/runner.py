@@ -110,8 +110,21 @@ def initial_guess(seq: Sequence, config: RunConfig, ctx: RunContext) -> tuple[st
     ctx.stage(f"init:{init}")
     label, start = base_guess(seq)
     warm_cfg = config.model_copy(update={"method": init, "init": label})
-    out = get(init).fn(seq, start, warm_cfg, RunContext(NullSink(), ctx.cancel, ctx.started))
+    progress = WarmProgress(ctx.sink, f"init:{init}")
+    out = get(init).fn(seq, start, warm_cfg, RunContext(progress, ctx.cancel, ctx.started))
     return f"{init} (from {label})", out.poses
+
+
+class WarmProgress:
+    """The warm start's sink: its progress as ``init:<method>`` stage events (``done`` of
+    ``total`` steps), its other events dropped (they are not the run's own)."""
+
+    def __init__(self, sink: Sink, stage: str) -> None:
+        self.sink, self.stage = sink, stage
+
+    def emit(self, event: Any) -> None:
+        if event.kind == "iteration" and event.iteration > 0:
+            self.sink.emit(StageEvent(stage=self.stage, elapsed=event.elapsed, done=event.iteration, total=event.total))
 
 
 # --------------------------------------------------------------------------------------------
@@ -180,6 +193,7 @@ def run_scene(
         "initial_guess": label,
         "profile": config.profile,
         "iterations": out.iterations,
+        "iteration_unit": info.counts,  # what they count: optimiser iterations, frames, steps
         "wall_seconds": wall,
         "ate": None,
         "point_l2": None,
