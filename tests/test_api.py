@@ -1,6 +1,6 @@
 """The REST API through FastAPI's TestClient: sequences, jobs, events, files, cancel, crashes, queue.
 
-Jobs run in real worker processes. The ``demo-*`` methods (``app.demo``, enabled with the
+Jobs run in real worker processes. The ``demo-*`` methods (``strep_demo_methods``, tests/plugins, enabled with the
 ``plugins`` setting) sleep instead of computing, so cancel, kill and queue tests are cheap
 and do not depend on how fast the machine is.
 """
@@ -85,7 +85,7 @@ def sim_npz(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def make_settings(data_dir: Path, **overrides: Any) -> Settings:
     values: dict[str, Any] = {
         "data_dir": data_dir,
-        "plugins": ["app.demo"],
+        "plugins": ["strep_demo_methods"],
         "max_concurrent_jobs": 2,
         "cancel_grace_seconds": 1.0,
         "worker_threads": 1,

@@ -119,3 +119,32 @@ def test_serve_on_a_busy_data_dir_is_one_line(tmp_path: Path, capsys: pytest.Cap
 
 def test_the_service_data_dir_is_ignored_by_git() -> None:
     assert "strep-data/" in (ROOT / ".gitignore").read_text().splitlines()
+
+
+def test_pytest_lanes_are_declared_and_ci_runs_every_test() -> None:
+    """A fast default lane (no slow, browser or accuracy tests) and CI on all of them."""
+    import tomllib
+
+    pytest_cfg = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["pytest"]["ini_options"]
+    declared = {m.split(":")[0] for m in pytest_cfg["markers"]}
+    assert {"slow", "browser", "accuracy"} <= declared
+    assert "-m 'not slow and not browser and not accuracy'" in pytest_cfg["addopts"]
+    assert 'python -m pytest -q -m ""' in (ROOT / ".ci" / "run").read_text()
+
+
+def test_the_demo_methods_do_not_ship() -> None:
+    assert not (ROOT / "app" / "demo.py").exists()
+    assert (ROOT / "tests" / "plugins" / "strep_demo_methods.py").is_file()
+
+
+def test_geometry_has_no_unused_compose() -> None:
+    from strep_core import geometry
+
+    assert not hasattr(geometry, "compose")  # poses compose with @; the helper was used by tests only
+
+
+def test_readme_agrees_with_the_benchmarks_on_simulated_3d() -> None:
+    readme = (ROOT / "README.md").read_text()
+    row = next(line for line in readme.splitlines() if line.startswith("| simulated 3D, 10 walks"))
+    assert "0.199" in row and "0.149" in row and "0.352" not in readme and "0.368" not in row
+    assert "../shared/data/carmen/intel-corrected.log.gz" in readme

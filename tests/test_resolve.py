@@ -116,3 +116,34 @@ def test_an_unversioned_file_is_read_as_version_one() -> None:
     assert RunConfig.model_validate(old).classical.icp.scales == [1.0]
     with pytest.raises(ValueError, match="icp_scales"):  # version 2 has no such key
         RunConfig.model_validate({**old, "config_version": 2})
+
+
+def test_a_job_past_its_memory_budget_fails_and_the_service_runs_on(tmp_path: Path) -> None:
+    """Issue 29: one job could take the machine's memory. Its worker is killed past the budget;
+    the service answers and the next job runs."""
+    settings = Settings(
+        data_dir=tmp_path / "service",
+        max_concurrent_jobs=2,
+        worker_threads=1,
+        job_memory_mib=700,
+        plugins=["strep_demo_methods"],
+    )
+    with TestClient(create_app(settings)) as c:
+        hog = c.post("/api/jobs", json={"sequence_id": "sample:sim2d-small", "method": "demo-hog", "frames": "0:6"})
+        calm = c.post(
+            "/api/jobs",
+            json={
+                "sequence_id": "sample:sim2d-small",
+                "method": "demo-sleep",
+                "frames": "0:6",
+                "optim": {"iterations": 40},
+            },
+        )
+        assert hog.status_code == calm.status_code == 201
+        failed = _wait(c, hog.json()["id"], timeout=120)
+        assert failed["status"] == "failed", failed
+        assert "more than its memory budget of 700 MiB" in failed["error"]
+        assert _wait(c, calm.json()["id"], timeout=120)["status"] == "succeeded"
+        assert c.get("/api/health").status_code == 200
+        after = c.post("/api/jobs", json={"sequence_id": "sample:sim2d-small", "method": "identity", "frames": "0:6"})
+        assert _wait(c, after.json()["id"], timeout=120)["status"] == "succeeded"
