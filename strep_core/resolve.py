@@ -12,10 +12,10 @@ through there, so the same request on the same frames gives the same resolved co
    threads, the learned methods' batch, and the classical lengths and radii (``s =
    Sequence.scale()``, rules of `strep_core.registration.params`).
 
-The resolved config holds concrete values only, so resolving it again changes nothing and its
+The resolved config holds concrete values, so resolving it again changes nothing and its
 ``config.json`` re-runs it. Requests travel between processes as
 ``model_dump_json(exclude_unset=True)``: a full dump would mark every default as given, and no
-profile or overlay would apply (issue 31: the service ran laser-keyframes data on the defaults).
+profile or overlay would apply (docs/design/resolve.md).
 """
 
 from __future__ import annotations

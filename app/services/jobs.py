@@ -444,7 +444,7 @@ class JobService:
                 [StatusChange(job_id, ("queued",), "failed", f"sequence {job['sequence_id']} no longer exists")]
             )
             return False
-        path, selection = source
+        path, selection, scene = source
         try:
             config = RunConfig.model_validate(job["config"])
         except ValidationError as exc:  # queued by an older version whose config no longer validates
@@ -461,6 +461,7 @@ class JobService:
             job_id=job_id,
             source=str(path),
             selection=selection,
+            scene=scene,
             sequence_name=self.sequences.name_of(job["sequence_id"]),  # not "sequence", the stored name
             config=config.model_dump_json(exclude_unset=True),
             scene_path=str(self.scene_path(job_id)),
