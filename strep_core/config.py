@@ -136,9 +136,10 @@ class RunConfig(Section):
         request stored without its defaults (``exclude_unset``) still says its format."""
         if not isinstance(data, dict):
             return data
-        if int(data.get("config_version") or 1) < 2:
-            data = migrate(data)  # version 1: keys renamed by a frozen table
-        data = {**data, "config_version": CONFIG_VERSION}
+        version = data.get("config_version")
+        if version is None or version == 1:  # version 1: keys renamed by a frozen table
+            data = {**migrate(data), "config_version": CONFIG_VERSION}
+        # any other value is validated as given (a later version, or nonsense, is refused)
         start, init = data.get("start", "auto"), data.get("init", "auto")
         if start == "scratch" and init in CLASSICAL_INITS:
             raise ValueError(f"start 'scratch' runs no classical step; init {init!r} is one (use pose-graph)")

@@ -82,8 +82,8 @@ def initial_guess(seq: Sequence, config: RunConfig, ctx: RunContext) -> tuple[st
     """``config.init`` (resolved: `strep_core.resolve`) as a label and ``(K, D+1, D+1)`` poses.
 
     ``icp``/``multiway``/``kiss`` run that classical method from the base guess (odometry or
-    identity) first, its progress reported as ``warm`` events; ``fpfh`` places views far apart by
-    global feature matching (`strep_core.globalreg`).
+    identity) first, its progress reported as ``init:<method>`` stage events (`WarmProgress`);
+    ``fpfh`` places views far apart by global feature matching (`strep_core.globalreg`).
     """
     init: str = config.init
     if init == "auto":  # a config that skipped the resolve stage: the base guess

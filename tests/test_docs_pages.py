@@ -54,11 +54,15 @@ def test_the_page_shows_the_service_defaults_and_sends_none() -> None:
     """One default iteration count everywhere (before: the page sent 150, the CLI used 300): the
     page's placeholders are the config's defaults, and it sends a count only when one is typed."""
     from strep_core.config import RunConfig
+    from strep_core.profiles import START_OVERLAYS
 
     root = Path(__file__).resolve().parents[1] / "static"
     html = (root / "index.html").read_text()
     shown = dict(re.findall(r'<option value="([a-z-]+)" data-iterations="(\d+)"', html))
-    expected = {start: RunConfig.build(start=start).optim.iterations for start in ("scratch", "pose-graph")}
+    default = RunConfig().optim.iterations
+    expected = {  # the start's overlay over the defaults (strep_core.resolve applies it)
+        start: START_OVERLAYS[start].get("optim", {}).get("iterations", default) for start in ("scratch", "pose-graph")
+    }
     assert {k: int(v) for k, v in shown.items()} == expected
     assert re.search(r'<option value="scratch"[^>]* selected>', html)  # the first preset: from scratch
     assert re.search(r'<input type="number" id="iterations"(?![^>]*value=)[^>]*>', html)  # empty by default
