@@ -42,6 +42,7 @@ def v1_pose0(shared_data: Path):
 # Markers given by module (files whose tests all run a whole registration, or drive chromium);
 # single slow tests carry @pytest.mark.slow themselves. Plain `pytest` leaves these out.
 BROWSER_MODULES = {"test_browser.py"}
+SLOW_MODULES = {"test_api_server.py", "test_live.py", "test_ray.py", "test_api_schemathesis.py"}  # servers, Ray
 ACCURACY_MODULES = {"test_real3d.py", "test_turning.py", "test_scratch.py", "test_learned.py", "test_reproduce.py"}
 
 
@@ -53,3 +54,5 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(pytest.mark.browser)
         if name in ACCURACY_MODULES:
             item.add_marker(pytest.mark.accuracy)
+        if name in SLOW_MODULES:
+            item.add_marker(pytest.mark.slow)
