@@ -127,8 +127,8 @@ class JobPublic(BaseModel):
     metrics: dict[str, Any] | None = Field(default=None, description="metrics.json, once succeeded")
     files: list[str] = Field(default_factory=list, description="names for GET /api/jobs/{id}/files/{name}")
     config: dict[str, Any] = Field(
-        description="the RunConfig the job runs with (as saved in its config.json); kept as stored, so jobs "
-        "made by older versions still read back"
+        description="the RunConfig as requested (the fields given) until the job succeeds, then as resolved by "
+        "the run (its config.json: every value that ran); kept as stored, so older jobs still read back"
     )
     cancel_requested: bool = False
     exit_code: int | None = Field(default=None, description="the worker process's exit code (negative: signal)")

@@ -30,13 +30,15 @@ def serve(
 
     from app.core.config import InsecureSettings, Settings
     from app.main import create_app
+    from app.services import DataDirBusy, check_data_dir_free
 
     given = {"host": host, "port": port, "data_dir": data_dir, "viewer_port": viewer_port}
     overrides = {k: v for k, v in given.items() if v is not None}
     settings = Settings(**overrides)  # type: ignore[arg-type]
     try:
         settings.check_secure()
-    except InsecureSettings as exc:
+        check_data_dir_free(settings.data_dir)
+    except (InsecureSettings, DataDirBusy) as exc:
         print(f"strep serve: {exc}", file=sys.stderr)
         return EXIT_REFUSED
     config = uvicorn.Config(

@@ -131,7 +131,7 @@ class StatusChange:
     fields: tuple[tuple[str, Any], ...] = ()
 
 
-_JOB_FIELDS = {"metrics", "files", "pid", "exit_code", "started_at", "finished_at", "cancel_requested"}
+_JOB_FIELDS = {"config", "metrics", "files", "pid", "exit_code", "started_at", "finished_at", "cancel_requested"}
 
 
 def status_data(status: str, *, error: str | None = None, **extra: Any) -> str:
@@ -408,7 +408,7 @@ class Store:
 
 
 def _encode(key: str, value: Any) -> Any:
-    if key in ("metrics", "files"):
+    if key in ("config", "metrics", "files"):
         return json.dumps(value, allow_nan=False) if value is not None else None
     if key == "cancel_requested":
         return int(bool(value))

@@ -202,7 +202,9 @@ def case_config(case: BenchCase, method: str, quick: bool, seq: Sequence) -> Run
     if case.start == "scratch" and get(method).learned:
         optim = {"iterations": QUICK_SCRATCH_ITERATIONS} if quick else {}
         return RunConfig.build(method=method, start="scratch", optim=optim, data=case.data)
-    cfg = method_config(method, quick, seq)
+    # the warm start's settings, whatever init the case or a plan sets (start auto with init
+    # identity would be scratch)
+    cfg = method_config(method, quick, seq).model_copy(update={"start": "pose-graph"})
     if case.init is not None:
         cfg = cfg.model_copy(update={"init": case.init})
     if case.data:

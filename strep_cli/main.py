@@ -101,6 +101,8 @@ def _check_output(path: Path, what: str, *, folder: bool) -> None:
     if path.exists() and path.is_dir() != folder:
         kind = "a file" if folder else "a folder"
         raise StrepError(f"{what} {path}: is {kind}; give {'a folder' if folder else 'a file name'}")
+    if not folder and not path.parent.is_dir():  # a file goes into a folder that exists: no silent mkdir
+        raise StrepError(f"{what} {path}: the folder {path.parent} does not exist")
     parent = path if folder and path.exists() else path.parent
     while not parent.exists() and parent != parent.parent:
         parent = parent.parent
@@ -108,6 +110,15 @@ def _check_output(path: Path, what: str, *, folder: bool) -> None:
         raise StrepError(f"{what} {path}: {parent} is a file, not a folder")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise StrepError(f"{what} {path}: {parent} is not writable")
+
+
+def _check_early(config: Any) -> None:
+    """What can fail without the data: the method's name, the device asked for."""
+    from strep_core.methods import get
+    from strep_core.resolve import resolve_device
+
+    get(config.method)
+    resolve_device(config.device)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -119,6 +130,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             f"give a folder of PLY/PCD frames or one of {_accepted_inputs()}"
         )
     config = build_config(args)
+    _check_early(config)  # an unknown method or a missing GPU fails before any loading
     out_dir = Path(args.out)
     _check_output(out_dir, "--out", folder=True)  # before the run, not after it
     if args.rrd is not None:
@@ -239,6 +251,7 @@ def make_parser() -> argparse.ArgumentParser:
         prog="strep",
         description="Unsupervised global registration of temporal sequences of 2D/3D point clouds (STREP).",
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     run = sub.add_parser("run", help="register a sequence and write trajectory, map and metrics")
@@ -362,9 +375,21 @@ def make_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("strep-studio")
+    except PackageNotFoundError:  # pragma: no cover - run from a checkout that was never installed
+        return "unknown"
+
+
 def main(argv: Seq[str] | None = None) -> int:
     parser = make_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:  # the command's own usage, not the top level's
+        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        sub.choices[args.command].error(f"unrecognized arguments: {' '.join(extra)}")
     try:
         return int(args.fn(args) or 0)
     except StrepError as exc:

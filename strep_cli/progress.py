@@ -22,6 +22,25 @@ class ProgressSink:
         self.method = method
         self.unit = ""
         self.optimising = False
+        self.counts = "iterations"  # what the method's iterations count (`MethodInfo.counts`)
+        self.shown = 0  # the warm start's last progress line, in tenths
+
+    def _stage_progress(self, event: Any) -> None:
+        """A long stage's ``done`` of ``total``: a bar, or a line every tenth."""
+        if self.mode == "bar":
+            if self.bar is None:
+                from tqdm import tqdm
+
+                self.bar = tqdm(total=event.total, desc="warm start", unit="step", leave=False, file=sys.stderr)
+            self.bar.n = event.done
+            self.bar.refresh()
+            return
+        tenth = 10 * event.done // max(event.total, 1)
+        if tenth > self.shown:
+            self.shown = tenth
+            from strep_core.events import stage_label
+
+            self._line(f"{stage_label(event.stage)}: {event.done}/{event.total} steps")
 
     def _line(self, text: str) -> None:
         if self.bar is not None:
@@ -36,7 +55,10 @@ class ProgressSink:
             return
         from strep_core.events import stage_label
 
-        if event.kind == "stage":
+        if event.kind == "stage" and event.done is not None:
+            self._stage_progress(event)
+        elif event.kind == "stage":
+            self.close()
             self._line(f"{stage_label(event.stage)} ...")
         elif event.kind == "start":
             self.close()
@@ -46,13 +68,18 @@ class ProgressSink:
                 event.total_iterations,
                 False,
             )
+            from strep_core.methods import available
+
+            info = available().get(event.method)
+            self.counts = info.counts if info is not None else "iterations"
         elif event.kind == "iteration":
             ate = f"ATE {event.ate:.4g} {self.unit}" if event.ate is not None else None
             if event.iteration == 0:  # the starting poses: after the warm start, if any
                 self._line(f"starting poses: {ate}" if ate else "starting poses ready")
             if not self.optimising and event.iteration < event.total:
                 self.optimising = True
-                self._line(f"optimising ({event.total} iterations) ...")
+                doing = "optimising" if self.counts == "iterations" else "registering"
+                self._line(f"{doing} ({event.total} {self.counts}) ...")
                 if self.mode == "bar":
                     from tqdm import tqdm
 

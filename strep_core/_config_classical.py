@@ -10,11 +10,10 @@ median point range), so one set of defaults serves pixels and metres; see
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Literal
 
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, field_validator
 
-from strep_core._config_migrate import migrate_section
 from strep_core._config_sections import Section
 
 
@@ -250,8 +249,8 @@ class KissConfig(Section):
 class ClassicalConfig(Section):
     """Settings of the classical baselines (`icp`, `multiway`, `kiss`), one sub-section per concern.
 
-    The flat names of earlier versions (``icp_scales``, ``kiss_voxel``...) are still read, with a
-    logged warning naming the new key (`strep_core._config_migrate`).
+    The flat names of version 1 (``icp_scales``, ``kiss_voxel``...) are still read from files of
+    that version (`strep_core._config_migrate`).
     """
 
     icp: IcpConfig = Field(default_factory=IcpConfig, description="pairwise ICP")
@@ -268,8 +267,3 @@ class ClassicalConfig(Section):
     threads: int = Field(
         default=1, ge=1, le=256, description="CPU threads for Open3D and KISS-ICP (1: bit-for-bit repeatable)"
     )
-
-    @model_validator(mode="before")
-    @classmethod
-    def _migrate(cls, data: Any) -> Any:
-        return migrate_section("classical", data)

@@ -1,10 +1,11 @@
-"""Config keys of earlier versions, read under their new names.
+"""Config files of format version 1, read under the current names.
 
-`RENAMED` maps every old key (dotted, from the run config's root) to its new path. A run config
-given as a dict (a ``config.json`` saved by an older run, ``--set classical.icp_scales=...``, a
-REST job body) is rewritten by `migrate` before validation, with one logged warning naming the
-new keys; an old key given beside its new one wins (it was given last: ``--config new.json --set
-old=...``). Keys in neither table are left for validation to refuse as before.
+`RENAMED` (frozen: version 1's keys) maps every old key (dotted, from the run config's root) to
+its new path. A run config of version 1 (a ``config.json`` without ``config_version``, or a
+request that gives none: ``--set classical.icp_scales=...``, a REST job body) is rewritten by
+`migrate` before validation, with one logged warning naming the new keys; an old key given beside
+its new one wins. Keys in neither table are left for validation to refuse. A later rename bumps
+`strep_core.config.CONFIG_VERSION` and adds its own step here, instead of growing this table.
 """
 
 from __future__ import annotations
@@ -110,16 +111,6 @@ def _rewrite(section: str, data: dict[str, Any], renamed: list[str]) -> dict[str
 def _warn(renamed: list[str]) -> None:
     if renamed:
         log.warning("config keys renamed, the old names are read for now: %s", ", ".join(renamed))
-
-
-def migrate_section(section: str, data: Any) -> Any:
-    """``data`` of run-config section ``section`` with its old keys moved to their new paths."""
-    if not isinstance(data, dict):
-        return data
-    renamed: list[str] = []
-    out = _rewrite(section, data, renamed)
-    _warn(renamed)
-    return out
 
 
 def migrate(data: Any) -> Any:

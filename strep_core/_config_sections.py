@@ -6,9 +6,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
-
-from strep_core._config_migrate import migrate_section
+from pydantic import BaseModel, ConfigDict, Field
 
 # A layer width, and the most points any per-frame count may ask for: bounds that keep a
 # request from allocating terabytes in a worker (the defaults are far below them).
@@ -141,11 +139,6 @@ class LossConfig(Section):
         le=100_000,
         description="first N iterations: the occupancy MLP learns the map, poses get no gradient from it",
     )
-
-    @model_validator(mode="before")
-    @classmethod
-    def _migrate(cls, data: Any) -> Any:
-        return migrate_section("loss", data)
 
 
 class OptimConfig(Section):

@@ -11,7 +11,7 @@ import json
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, model_validator
 
 from strep_core._config_classical import (
     ClassicalConfig,
@@ -36,9 +36,9 @@ from strep_core.errors import ConfigError
 
 __all__ = [
     "CLASSICAL_INITS",
+    "CONFIG_VERSION",
     "MAX_POINTS",
     "RENAMED",
-    "SCRATCH_PROFILE",
     "ClassicalConfig",
     "CorrelativeConfig",
     "DataConfig",
@@ -66,23 +66,10 @@ DeviceName = Literal["cpu", "cuda", "auto"]
 # initial guesses that run a classical method first (a from-scratch start runs none)
 CLASSICAL_INITS = frozenset({"icp", "multiway", "kiss", "fpfh"})
 
-
-# The learned methods' settings when they start from scratch (no classical step), applied to
-# every field a request leaves out; measured in docs/design/from-scratch.md. The defaults of
-# the sections are those of the pose-graph warm start.
-SCRATCH_PROFILE: dict[str, dict[str, Any]] = {
-    "model": {"link_init": 1.0},
-    # temporal pairs (Huber) form the chain; from halfway, loop pairs (truncated, weighted by
-    # window / span) close it: v1_pose0 1.75 -> 0.47 px (docs/design/from-scratch.md)
-    "loss": {
-        "robust": "huber",
-        "loop_radius_fraction": 0.5,
-        "loop_after": 0.5,
-        "loop_robust": "truncated",
-        "loop_weight": "span",
-    },
-    "optim": {"lr_latent": 1e-2, "iterations": 1000},
-}
+# The format of a saved config. A file without it is version 1 and is read through the frozen
+# table of its renamed keys (`strep_core._config_migrate`); a later rename bumps the version
+# and adds one upgrade step, in the same module.
+CONFIG_VERSION = 2
 
 
 def merge(under: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
@@ -94,38 +81,21 @@ def merge(under: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _overlay(given: Any, profile: dict[str, Any]) -> dict[str, Any]:
-    """``profile`` under the values of ``given`` (a dict or a section model: its set fields,
-    nested sections included)."""
-    if isinstance(given, BaseModel):
-        given = given.model_dump(exclude_unset=True)
-    return merge(profile, given or {})
-
-
-def _under(given: Any, section: type[BaseModel], profile: dict[str, Any]) -> Any:
-    """``profile``'s values under ``given``'s, as a section whose *set* fields are only ``given``'s:
-    the data's profile (`strep_core.profiles.resolve`) may still replace the others."""
-    try:
-        out = section.model_validate(_overlay(given, profile))
-    except ValidationError:
-        return _overlay(given, profile)  # reported with its field path by RunConfig's own validation
-    given_names = given.model_fields_set if isinstance(given, BaseModel) else set(given or {})
-    out.__pydantic_fields_set__ = set(given_names)
-    return out
-
-
 ProfileName = Literal["auto", "none", "laser-keyframes", "laser-dense", "depth-turning", "depth-handheld"]
 
 
 class RunConfig(Section):
     """Everything one run needs besides its input.
 
-    ``start`` is resolved when the config is built: ``auto`` becomes ``scratch`` when ``init``
-    is ``identity`` and ``pose-graph`` otherwise; ``scratch`` fills the fields left out with
-    `SCRATCH_PROFILE` (and ``init`` ``auto`` with ``identity``). A saved config holds every
-    field, so it reproduces its run whatever the profile becomes.
+    As given (a request), fields left out and ``auto`` values are decided by the runner's one
+    resolve stage (`strep_core.resolve.resolve`): the start, the data's profile, the start's
+    overlay, the initial guess, device, threads, batch and the classical lengths. The resolved
+    config is what ran and what ``config.json`` holds; loaded again, it re-runs the same values.
     """
 
+    config_version: int = Field(
+        default=CONFIG_VERSION, ge=1, le=CONFIG_VERSION, description="format of this config (files without: 1)"
+    )
     method: str = Field(default="strep", max_length=64, description="a name from `strep methods`")
     seed: int = Field(default=0, ge=0, le=2**31 - 1)
     device: DeviceName = "cpu"
@@ -161,27 +131,19 @@ class RunConfig(Section):
 
     @model_validator(mode="before")
     @classmethod
-    def _resolve_start(cls, data: Any) -> Any:
+    def _upgrade(cls, data: Any) -> Any:
+        """An older format's keys read under the current names; the version stamped, so a
+        request stored without its defaults (``exclude_unset``) still says its format."""
         if not isinstance(data, dict):
             return data
-        data = migrate(data)  # old keys first: the profiles below see the new names only
+        version = data.get("config_version")
+        if version is None or version == 1:  # version 1: keys renamed by a frozen table
+            data = {**migrate(data), "config_version": CONFIG_VERSION}
+        # any other value is validated as given (a later version, or nonsense, is refused)
         start, init = data.get("start", "auto"), data.get("init", "auto")
-        if start == "auto":
-            start = "scratch" if init == "identity" else "pose-graph"
-        if start == "scratch":
-            if init in CLASSICAL_INITS:
-                raise ValueError(f"start 'scratch' runs no classical step; init {init!r} is one (use pose-graph)")
-            data = {
-                **data,
-                **{
-                    name: _under(data.get(name), cls.model_fields[name].annotation, values)
-                    for name, values in SCRATCH_PROFILE.items()
-                },
-                "init": "identity" if init == "auto" else init,
-            }
-        # start "pose-graph" with init "identity": the warm-start settings from identity (the
-        # benchmark's bunny[identity] rows); their saved config.json must load again
-        return {**data, "start": start}
+        if start == "scratch" and init in CLASSICAL_INITS:
+            raise ValueError(f"start 'scratch' runs no classical step; init {init!r} is one (use pose-graph)")
+        return data
 
     def to_json(self) -> str:
         return self.model_dump_json(indent=2)

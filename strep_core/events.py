@@ -58,6 +58,8 @@ class StageEvent(_Event):
     kind: Literal["stage"] = "stage"
     stage: str
     elapsed: float
+    done: int | None = Field(default=None, description="a long stage's progress (the warm start's steps)")
+    total: int | None = Field(default=None, description="steps of the stage, with ``done``")
 
 
 STAGE_LABELS = {

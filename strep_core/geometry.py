@@ -122,11 +122,6 @@ def translation(pose: Array) -> Array:
     return pose[..., :d, d]
 
 
-def compose(a: Array, b: Array) -> Array:
-    """``a @ b``: first apply ``b``, then ``a``. Shapes ``(..., D+1, D+1)``."""
-    return a @ b
-
-
 def inverse(pose: Array) -> Array:
     """Inverse of a rigid pose ``(..., D+1, D+1)`` (uses ``R^T``, not a general inverse)."""
     rot_t = _swap(rotation(pose))

@@ -1,11 +1,16 @@
 """Settings chosen from the data: named profiles and the probe that picks one.
 
-A *profile* is a plain overlay of config values (like `strep_core.config.SCRATCH_PROFILE`): a
-run's fields left out take the profile's values, fields given keep theirs. `RunConfig.profile`
-names one, or ``"auto"`` (the default): then `probe` measures a few frame pairs of the sequence
-and picks one. `resolve` does either and records the choice and its reason in the config
-(``profile``, ``profile_reason``), so ``config.json`` says what was chosen and why, and, since a
-saved config holds every field, re-runs the same settings whatever the probe would say.
+Every overlay of the project lives here, in one form: a plain dict of config values per
+section. A run's fields left out take the overlay's values, fields given keep theirs
+(`strep_core.resolve.resolve`, the one place they are applied). Two kinds, stacked by `overlay`:
+
+* the start's overlay (`START_OVERLAYS`): the learned methods' settings from scratch;
+* the data's profile (`PROFILES`, and its part for runs from scratch, `SCRATCH_OVERLAYS`).
+
+`RunConfig.profile` names a profile, or ``"auto"`` (the default): then `probe` measures a few
+frame pairs of the sequence and picks one. The resolved config records the choice and its
+reason (``profile``, ``profile_reason``), so ``config.json`` says what was chosen and why, and,
+since a saved config holds every field, re-runs the same settings whatever the probe would say.
 
 Profiles (values in `PROFILES`; measurements in ``docs/design/profiles.md``):
 
@@ -78,7 +83,27 @@ PROFILES: dict[str, dict[str, dict[str, Any]]] = {
 }
 PROFILE_NAMES = tuple(PROFILES)
 
-# Further overlays for runs from scratch (`RunConfig.start` "scratch"), over `SCRATCH_PROFILE`.
+# The learned methods' settings per start, under the profile's. "pose-graph" (refine a classical
+# warm start) is the sections' defaults; "scratch" (from identity, no classical step) is measured
+# in docs/design/from-scratch.md.
+START_OVERLAYS: dict[str, dict[str, dict[str, Any]]] = {
+    "pose-graph": {},
+    "scratch": {
+        "model": {"link_init": 1.0},
+        # temporal pairs (Huber) form the chain; from halfway, loop pairs (truncated, weighted by
+        # window / span) close it: v1_pose0 1.75 -> 0.47 px (docs/design/from-scratch.md)
+        "loss": {
+            "robust": "huber",
+            "loop_radius_fraction": 0.5,
+            "loop_after": 0.5,
+            "loop_robust": "truncated",
+            "loop_weight": "span",
+        },
+        "optim": {"lr_latent": 1e-2, "iterations": 1000},
+    },
+}
+
+# Further overlays for runs from scratch (`RunConfig.start` "scratch"), over `START_OVERLAYS["scratch"]`.
 # A camera turning 30 degrees in place shares about half its view with the next frame: the Huber
 # Chamfer's minimum then lies at half the turn, the trimmed one's at the turn, and frames two apart
 # barely overlap; the camera stays level, so corrections turn about its vertical axis only
@@ -211,15 +236,16 @@ def probe(seq: Sequence) -> ProbeResult:
     return ProbeResult("depth-handheld", f"{kind} sensor, {said} (< {TURNING_TURN:.0f} deg)", measures)
 
 
-def overlay(name: str, seq: Sequence | None = None, *, scratch: bool = False) -> dict[str, dict[str, Any]]:
-    """The overlay of profile ``name`` per section (with its `SCRATCH_OVERLAYS` part when
-    ``scratch``); ``depth-turning`` turns about the sensor's own vertical axis when ``seq``
-    records one."""
+def overlay(name: str, seq: Sequence | None = None, *, start: str = "pose-graph") -> dict[str, dict[str, Any]]:
+    """The overlay of a run per section: the start's (`START_OVERLAYS`), profile ``name``'s over
+    it, and from scratch the profile's `SCRATCH_OVERLAYS` part over both; ``depth-turning``
+    turns about the sensor's own vertical axis when ``seq`` records one."""
     from strep_core.config import merge
 
-    out = copy.deepcopy(PROFILES[name])
-    if scratch:
-        for section, values in SCRATCH_OVERLAYS.get(name, {}).items():
+    out: dict[str, dict[str, Any]] = copy.deepcopy(START_OVERLAYS.get(start, {}))
+    parts = [PROFILES[name], SCRATCH_OVERLAYS.get(name, {}) if start == "scratch" else {}]
+    for part in parts:
+        for section, values in copy.deepcopy(part).items():
             out[section] = merge(out.get(section, {}), values)
     if name == "depth-turning" and seq is not None:
         axis = sensor_of(seq).get("vertical_axis")
@@ -230,24 +256,12 @@ def overlay(name: str, seq: Sequence | None = None, *, scratch: bool = False) ->
     return out
 
 
-def resolve(config: Any, seq: Sequence) -> Any:
-    """``config`` (a `RunConfig`) with its profile applied: the probe's choice when ``profile`` is
-    ``"auto"``, else the named one; fields the config set keep their values. The returned config
-    names the profile and why (``profile_reason``)."""
-    from strep_core.config import _overlay, merge
-
-    if config.profile == "auto":
-        try:
-            found = probe(seq)
-            name, reason = found.profile, f"probe: {found.reason}"
-        except Exception as exc:  # a probe that cannot measure (a few points a frame) is no error: defaults
-            name, reason = "none", f"probe failed ({type(exc).__name__}: {exc}): the defaults"
-    else:
-        name = config.profile
-        reason = config.profile_reason or "given"
-    update: dict[str, Any] = {"profile": name, "profile_reason": reason}
-    for section, values in overlay(name, seq, scratch=config.start == "scratch").items():
-        current = getattr(config, section)
-        # the profile's values over the defaults (and over SCRATCH_PROFILE's), under the fields given
-        update[section] = type(current).model_validate(merge(current.model_dump(), _overlay(current, values)))
-    return config.model_copy(update=update)
+def choose(seq: Sequence, name: str, reason: str | None = None) -> tuple[str, str]:
+    """The profile of a run and why: the probe's choice when ``name`` is ``"auto"``, else ``name``."""
+    if name != "auto":
+        return name, reason or "given"
+    try:
+        found = probe(seq)
+    except Exception as exc:  # a probe that cannot measure (a few points a frame) is no error: defaults
+        return "none", f"probe failed ({type(exc).__name__}: {exc}): the defaults"
+    return found.profile, f"probe: {found.reason}"

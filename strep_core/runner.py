@@ -1,5 +1,6 @@
 """The one place a run is orchestrated: read the input and select its frames once, resolve the
-profile and the initial guess, open the sinks, run the method, measure, write the result files.
+run's settings (`strep_core.resolve`), compute the initial guess, open the sinks, run the method,
+measure, write the result files.
 
 `strep run`, the service's worker, ``strep bench`` and ``strep reproduce`` all come through
 here (the role KISS-ICP's pipeline plays), so every run of any method gives the same `Result`
@@ -77,23 +78,15 @@ def base_guess(seq: Sequence) -> tuple[str, np.ndarray]:
     return "identity", g.identity(seq.dim, len(seq))
 
 
-# The learned methods' default warm start: the pose graph refines incremental ICP with loop
-# closures, the networks then refine it (docs/design/warm-start.md).
-LEARNED_WARM_START = "multiway"
+def initial_guess(seq: Sequence, config: RunConfig, ctx: RunContext) -> tuple[str, np.ndarray]:
+    """``config.init`` (resolved: `strep_core.resolve`) as a label and ``(K, D+1, D+1)`` poses.
 
-
-def initial_guess(seq: Sequence, config: RunConfig, ctx: RunContext, *, learned: bool) -> tuple[str, np.ndarray]:
-    """Resolve ``config.init`` into a label and ``(K, D+1, D+1)`` starting poses.
-
-    ``auto`` is the base guess (odometry or identity) for classical methods, and a pose-graph
-    (``multiway``: incremental ICP plus loop closures) warm start from that base guess for
-    learned ones. ``icp``/``multiway``/``kiss`` run that classical method from the base guess
-    first; ``fpfh`` places views far apart by global feature matching (`strep_core.globalreg`).
+    ``icp``/``multiway``/``kiss`` run that classical method from the base guess (odometry or
+    identity) first, its progress reported as ``init:<method>`` stage events (`WarmProgress`);
+    ``fpfh`` places views far apart by global feature matching (`strep_core.globalreg`).
     """
     init: str = config.init
-    if init == "auto":
-        init = LEARNED_WARM_START if learned else "base"
-    if init == "base":
+    if init == "auto":  # a config that skipped the resolve stage: the base guess
         return base_guess(seq)
     if init == "identity":
         return "identity", g.identity(seq.dim, len(seq))
@@ -116,9 +109,22 @@ def initial_guess(seq: Sequence, config: RunConfig, ctx: RunContext, *, learned:
     # a classical method as warm start, itself from the base guess
     ctx.stage(f"init:{init}")
     label, start = base_guess(seq)
-    warm_cfg = config.model_copy(update={"method": init, "init": "auto"})
-    out = get(init).fn(seq, start, warm_cfg, RunContext(NullSink(), ctx.cancel, ctx.started))
+    warm_cfg = config.model_copy(update={"method": init, "init": label})
+    progress = WarmProgress(ctx.sink, f"init:{init}")
+    out = get(init).fn(seq, start, warm_cfg, RunContext(progress, ctx.cancel, ctx.started))
     return f"{init} (from {label})", out.poses
+
+
+class WarmProgress:
+    """The warm start's sink: its progress as ``init:<method>`` stage events (``done`` of
+    ``total`` steps), its other events dropped (they are not the run's own)."""
+
+    def __init__(self, sink: Sink, stage: str) -> None:
+        self.sink, self.stage = sink, stage
+
+    def emit(self, event: Any) -> None:
+        if event.kind == "iteration" and event.iteration > 0:
+            self.sink.emit(StageEvent(stage=self.stage, elapsed=event.elapsed, done=event.iteration, total=event.total))
 
 
 # --------------------------------------------------------------------------------------------
@@ -152,15 +158,15 @@ def run_scene(
     cancel: CancelFlag | None = None,
 ) -> Result:
     """Run ``config.method`` on ``scene``, whose frames are already selected (`run`, `run_input`)."""
+    from strep_core.resolve import resolve
+
     sink = sink or NullSink()
     info = get(config.method)
     started = time.perf_counter()
-    from strep_core.profiles import resolve
-
-    config = resolve(config, scene)  # settings chosen from the data (or the profile named)
+    config = resolve(config, scene).config  # every setting that runs, decided once
     ctx = RunContext(sink=sink, cancel=cancel, started=started)
 
-    label, init_poses = initial_guess(scene, config, ctx, learned=info.learned)
+    label, init_poses = initial_guess(scene, config, ctx)
     t_init = time.perf_counter() - started
     sink.emit(
         StartEvent(
@@ -187,6 +193,7 @@ def run_scene(
         "initial_guess": label,
         "profile": config.profile,
         "iterations": out.iterations,
+        "iteration_unit": info.counts,  # what they count: optimiser iterations, frames, steps
         "wall_seconds": wall,
         "ate": None,
         "point_l2": None,

@@ -165,6 +165,8 @@ class RunState:
     unit: str = ""
     keep_poses: bool = True
     stage: str | None = None
+    stage_done: int | None = None
+    stage_total: int | None = None
     start_ate: float | None = None
     started: bool = False
     finished: bool = False
@@ -197,6 +199,7 @@ def _start(state: RunState, event: StartEvent) -> Step:
 
 def _stage(state: RunState, event: StageEvent) -> Step:
     state.stage = event.stage
+    state.stage_done, state.stage_total = event.done, event.total  # a long stage's progress
     state.rev += 1
     return Step("stage", max(state.pose_iteration, 0), event.elapsed, message=f"stage {event.stage}")
 

@@ -97,6 +97,8 @@ def _stage_text(state: RunState, view: RunView, status: str | None) -> str:
         return f"{head}: {start}" if start else head
     if it > 0:
         return f"optimising from {start}" if start else "optimising"
+    if state.stage_done is not None and state.stage_total:
+        return f"{stage_label(state.stage)} {state.stage_done} / {state.stage_total}…"
     return f"{stage_label(state.stage)}…"
 
 

@@ -1,6 +1,6 @@
 """The REST API through FastAPI's TestClient: sequences, jobs, events, files, cancel, crashes, queue.
 
-Jobs run in real worker processes. The ``demo-*`` methods (``app.demo``, enabled with the
+Jobs run in real worker processes. The ``demo-*`` methods (``strep_demo_methods``, tests/plugins, enabled with the
 ``plugins`` setting) sleep instead of computing, so cancel, kill and queue tests are cheap
 and do not depend on how fast the machine is.
 """
@@ -28,10 +28,10 @@ from app.server import serve
 from app.services import DataDirBusy, Service
 from app.services.broadcast import Mailbox
 from app.store import StoredEvent
-from strep_core.config import SCRATCH_PROFILE
 from strep_core.events import parse_event
 from strep_core.io.npz import write_npz
 from strep_core.methods import available
+from strep_core.profiles import START_OVERLAYS
 
 LONG = 100_000  # demo iterations: far longer than any test waits; such jobs are always cancelled
 
@@ -85,7 +85,7 @@ def sim_npz(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def make_settings(data_dir: Path, **overrides: Any) -> Settings:
     values: dict[str, Any] = {
         "data_dir": data_dir,
-        "plugins": ["app.demo"],
+        "plugins": ["strep_demo_methods"],
         "max_concurrent_jobs": 2,
         "cancel_grace_seconds": 1.0,
         "worker_threads": 1,
@@ -392,18 +392,20 @@ def test_strep_job_with_few_iterations(client: TestClient) -> None:
 
 
 def test_start_setting_round_trips(client: TestClient) -> None:
-    """``start`` is resolved once, stored in the job's config and served back as stored."""
+    """A job stores its request (the fields given); once run, it shows the resolved config."""
     job = create_job(client, "sample:sim2d-small", "strep", frames="0:12", start="scratch", optim={"iterations": 3})
-    assert (job["config"]["start"], job["config"]["init"]) == ("scratch", "identity")
-    assert job["config"]["optim"]["iterations"] == 3  # given: kept
-    assert job["config"]["optim"]["lr_latent"] == SCRATCH_PROFILE["optim"]["lr_latent"]  # left out: the profile's
+    assert job["config"]["start"] == "scratch" and job["config"]["optim"] == {"iterations": 3}
     done = wait_job(client, job["id"], FINAL, timeout=300)
     assert done["status"] == "succeeded", done
-    assert done["config"] == job["config"] and done["metrics"]["initial_guess"] == "identity"
+    assert (done["config"]["start"], done["config"]["init"]) == ("scratch", "identity")
+    assert done["config"]["optim"]["iterations"] == 3  # given: kept
+    assert done["config"]["optim"]["lr_latent"] == START_OVERLAYS["scratch"]["optim"]["lr_latent"]  # the start's
+    assert done["config"] == client.get(f"/api/jobs/{job['id']}/files/config.json").json()
+    assert done["metrics"]["initial_guess"] == "identity"
     events = parse_sse(client.get(f"/api/jobs/{job['id']}/events").text)
     its = [e["data"] for e in events if e["event"] == "iteration"]
     assert its[0]["iteration"] == 0 and its[0]["ate"] == pytest.approx(done["metrics"]["initial_ate"], rel=1e-6)
-    warm = create_job(client, "sample:sim2d-small", "identity", frames="0:12")
+    warm = wait_job(client, create_job(client, "sample:sim2d-small", "identity", frames="0:12")["id"], FINAL)
     assert (warm["config"]["start"], warm["config"]["optim"]["lr_latent"]) == ("pose-graph", 1e-4)
     body = {"sequence_id": "sample:sim2d-small", "config": {"start": "scratch", "init": "multiway"}}
     r = client.post("/api/comparisons", json=body)

@@ -63,7 +63,7 @@ def start_server(data_dir: Path, log: Path, *extra: str, wait: bool = True) -> S
     port = free_port()
     env = {
         **os.environ,
-        "STREP_PLUGINS": "app.demo",
+        "STREP_PLUGINS": "strep_demo_methods",
         "STREP_MAX_CONCURRENT_JOBS": "2",
         "STREP_CANCEL_GRACE_SECONDS": "2",
         "STREP_WORKER_THREADS": "1",

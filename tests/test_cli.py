@@ -203,6 +203,9 @@ def test_progress_is_one_line_per_stage_into_a_file(tmp_path: Path) -> None:
     stages = [
         "strep: loading the sequence ...",
         "strep: warm start (multiway) ...",
+        "strep: warm start (multiway): 10/24 steps",  # a line every tenth done (once per event here)
+        "strep: warm start (multiway): 20/24 steps",
+        "strep: warm start (multiway): 24/24 steps",
         "strep: starting poses: ATE ",
         "strep: optimising (4 iterations) ...",
         "strep: registered: ATE ",

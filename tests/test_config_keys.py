@@ -91,17 +91,21 @@ def test_an_old_config_json_reruns_to_the_same_resolved_config(tmp_path: Path) -
 
 
 def test_set_takes_an_old_key_and_warns_with_the_new_one(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """``--set`` alone is a request of no version (1): old keys are read. Over a saved config of
+    version 2 they are refused by name: that format has no such key."""
     from strep_cli.main import build_config, make_parser
 
-    RunConfig(method="icp").save(tmp_path / "saved.json")
     sets = ["classical.icp_scales=[1.0]", "loss.loop_radius=0.25", "classical.kiss.prior=init"]
-    argv = ["run", "x", "--config", str(tmp_path / "saved.json")]
-    args = make_parser().parse_args([*argv, *(arg for s in sets for arg in ("--set", s))])
+    args = make_parser().parse_args(["run", "x", *(arg for s in sets for arg in ("--set", s))])
     with caplog.at_level(logging.WARNING, logger="strep_core.config"):
         cfg = build_config(args)
-    assert cfg.classical.icp.scales == [1.0]  # the old key given last wins over the saved new one
+    assert cfg.classical.icp.scales == [1.0]
     assert cfg.loss.loop_radius_fraction == 0.25 and cfg.classical.kiss.prior == "init"
     assert "classical.icp_scales -> classical.icp.scales" in caplog.text
+    RunConfig(method="icp").save(tmp_path / "saved.json")
+    args = make_parser().parse_args(["run", "x", "--config", str(tmp_path / "saved.json"), "--set", sets[0]])
+    with pytest.raises(ConfigError, match=r"classical\.icp_scales: Extra inputs"):
+        build_config(args)
 
 
 @pytest.mark.parametrize(
@@ -152,7 +156,11 @@ def test_a_rest_job_body_with_old_keys_runs_under_the_new_names(tmp_path: Path) 
 def test_every_saved_config_of_a_benchmark_row_loads_again() -> None:
     """The bunny[identity] rows run every method from identity with the warm-start settings
     (start pose-graph, init identity); what they save must load and keep both."""
-    saved = RunConfig(method="strep").model_copy(update={"init": "identity"})  # as strep_bench's case_config
+    from strep_core.resolve import resolve
+    from strep_core.samples import load_sample
+
+    asked = RunConfig(method="strep").model_copy(update={"init": "identity", "start": "pose-graph"})  # case_config
+    saved = resolve(asked, load_sample("sim2d-small").select("0:12")).config
     again = RunConfig.model_validate(saved.model_dump(mode="json"))
     assert (again.start, again.init) == ("pose-graph", "identity")
     assert again.loss.robust == RunConfig(method="strep").loss.robust  # the warm start's loss, not scratch's

@@ -55,11 +55,16 @@ def test_the_page_shows_the_service_defaults_and_sends_none(client: TestClient) 
     page shows the service's defaults (GET /api/starts, no copy in the page), and sends a count
     only when one is typed."""
     from strep_core.config import RunConfig
+    from strep_core.profiles import START_OVERLAYS
 
     root = Path(__file__).resolve().parents[1] / "static"
     starts = client.get("/api/starts").json()
-    expected = {start: RunConfig.build(start=start).optim.iterations for start in ("scratch", "pose-graph")}
+    default = RunConfig().optim.iterations
+    expected = {  # the start's overlay over the defaults (strep_core.resolve applies it)
+        start: START_OVERLAYS[start].get("optim", {}).get("iterations", default) for start in ("scratch", "pose-graph")
+    }
     assert {s["name"]: s["iterations"] for s in starts["data"]} == expected
+    assert expected["scratch"] != expected["pose-graph"]
     assert starts["default"] == "scratch"  # the first preset: from scratch
     html = (root / "index.html").read_text()
     assert "data-iterations" not in html

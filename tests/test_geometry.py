@@ -52,8 +52,8 @@ def test_exp_log_round_trip(xi: np.ndarray) -> None:
 def test_inverse_and_identity(a: np.ndarray, b: np.ndarray) -> None:
     pa = g.exp(a)
     d = g.dim_of(pa)
-    np.testing.assert_allclose(g.compose(pa, g.inverse(pa)), np.eye(d + 1), atol=1e-9)
-    np.testing.assert_allclose(g.compose(g.identity(d), pa), pa, atol=1e-12)
+    np.testing.assert_allclose(pa @ g.inverse(pa), np.eye(d + 1), atol=1e-9)  # poses compose by @
+    np.testing.assert_allclose(g.identity(d) @ pa, pa, atol=1e-12)
     if len(a) == len(b):
         pb = g.exp(b)
         # (ab)^-1 = b^-1 a^-1

@@ -64,7 +64,7 @@ def assert_poses_equal(recorded: np.ndarray, expected: np.ndarray) -> None:
 def client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient]:
     settings = Settings(
         data_dir=tmp_path_factory.mktemp("live"),
-        plugins=["app.demo"],
+        plugins=["strep_demo_methods"],
         max_concurrent_jobs=2,
         worker_threads=1,
         viewer_enabled=True,

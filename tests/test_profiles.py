@@ -10,6 +10,7 @@ import pytest
 from strep_core import profiles
 from strep_core.config import RunConfig
 from strep_core.errors import ConfigError
+from strep_core.resolve import resolve
 from strep_core.runner import run
 
 
@@ -37,7 +38,7 @@ def test_the_probe_picks_the_turning_camera_profile_for_a_simulated_walk() -> No
     found = profiles.probe(seq)
     assert found.profile == "depth-turning", found.reason
     assert max(found.measures["turn_deg"]) >= 25  # the walk turns by 30 degrees in place
-    cfg = profiles.resolve(RunConfig(method="icp"), seq)
+    cfg = resolve(RunConfig(method="icp"), seq).config
     assert cfg.profile == "depth-turning" and cfg.profile_reason.startswith("probe: ")
     assert cfg.classical.icp.yaw_axis == (0.0, -1.0, 0.0)  # the camera's own vertical axis (OpenCV)
     assert cfg.classical.icp.yaw_search == 30.0 and cfg.classical.icp.local_map_frames == 1
@@ -55,13 +56,15 @@ def test_a_named_profile_skips_the_probe_and_given_fields_keep_their_values(inte
     cfg = RunConfig.model_validate(
         {"method": "icp", "profile": "depth-turning", "classical": {"icp": {"yaw_search": 10.0}}}
     )
-    out = profiles.resolve(cfg, intel)
+    out = resolve(cfg, intel).config
     assert out.profile == "depth-turning" and out.profile_reason == "given"
     assert out.classical.icp.yaw_search == 10.0  # given: kept
     assert out.classical.icp.yaw_step == 30.0  # left out: the profile's
     assert out.classical.icp.scales == [1.0, 0.5, 0.25]  # a field beside a given one in its sub-section
-    plain = profiles.resolve(RunConfig(method="icp", profile="none"), intel)
-    assert plain.classical == RunConfig().classical
+    plain = resolve(RunConfig(method="icp", profile="none"), intel).config
+    default = RunConfig().classical
+    assert (plain.classical.icp.degeneracy, plain.classical.icp.scales) == (default.icp.degeneracy, default.icp.scales)
+    assert plain.classical.icp.motion_prior == default.icp.motion_prior and plain.loss == RunConfig().loss
     with pytest.raises(ConfigError):
         RunConfig.build(profile="laser-sparse")
     from typing import get_args
@@ -72,10 +75,10 @@ def test_a_named_profile_skips_the_probe_and_given_fields_keep_their_values(inte
 
 
 def test_a_saved_config_keeps_its_settings_whatever_the_probe_says(intel) -> None:
-    cfg = profiles.resolve(RunConfig(method="icp"), intel)
+    cfg = resolve(RunConfig(method="icp"), intel).config
     saved = RunConfig.model_validate(json.loads(cfg.to_json()))
     # a saved config sets every field: applying its profile again changes nothing
-    assert profiles.resolve(saved, intel) == saved
+    assert resolve(saved, intel).config == saved
     assert saved.profile == "laser-keyframes" and "probe" in (saved.profile_reason or "")
 
 

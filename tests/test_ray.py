@@ -81,7 +81,7 @@ def client(ray_runtime: None, tmp_path_factory: pytest.TempPathFactory) -> Itera
         mp.setenv("STREP_RAY_ADDRESS", "local")
         settings = Settings(
             data_dir=data_dir,
-            plugins=["app.demo"],
+            plugins=["strep_demo_methods"],
             max_concurrent_jobs=2,
             cancel_grace_seconds=1.0,
             worker_threads=1,
@@ -151,7 +151,7 @@ def test_service_starts_and_stops_its_own_ray_runtime(tmp_path: Path) -> None:
         ray_address="local",
         ray_num_cpus=1,
         worker_threads=1,
-        plugins=["app.demo"],
+        plugins=["strep_demo_methods"],
     )
     with TestClient(create_app(settings)) as c:
         assert ray.is_initialized()

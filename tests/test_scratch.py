@@ -7,14 +7,17 @@ import pytest
 import torch
 
 from strep_core import losses
-from strep_core.config import SCRATCH_PROFILE, RunConfig
+from strep_core.config import RunConfig
 from strep_core.errors import ConfigError
 from strep_core.events import ListSink
 from strep_core.model import OccupancyMLP
+from strep_core.profiles import START_OVERLAYS
+from strep_core.resolve import resolve
 from strep_core.runner import run
 from strep_core.samples import load_sample
 
 FRAMES = "0:32"
+SCRATCH = START_OVERLAYS["scratch"]
 
 
 def _scratch(method: str, iterations: int) -> RunConfig:
@@ -40,19 +43,20 @@ def test_strep_from_scratch_halves_the_ate_of_identity(strep_from_scratch) -> No
 
 
 def test_scratch_profile_fills_only_what_is_left_out() -> None:
-    cfg = RunConfig.build(init="identity", loss={"robust": "truncated"})
+    seq = load_sample("sim2d-small").select(FRAMES)
+    cfg = resolve(RunConfig.build(init="identity", loss={"robust": "truncated"}), seq).config
     assert cfg.start == "scratch"  # auto + identity
     assert cfg.loss.robust == "truncated"  # given
-    assert cfg.loss.loop_radius_fraction == SCRATCH_PROFILE["loss"]["loop_radius_fraction"]  # left out
-    assert cfg.model.link_init == SCRATCH_PROFILE["model"]["link_init"]
+    assert cfg.loss.loop_radius_fraction == SCRATCH["loss"]["loop_radius_fraction"]  # left out
+    assert cfg.model.link_init == SCRATCH["model"]["link_init"]
     again = RunConfig.model_validate_json(cfg.model_dump_json())
-    assert again == cfg  # a saved config reproduces its run
-    warm = RunConfig.build()
-    assert (warm.start, warm.init, warm.optim.lr_latent) == ("pose-graph", "auto", 1e-4)
+    assert resolve(again, seq).config == cfg  # a saved config reproduces its run
+    warm = resolve(RunConfig.build(), seq).config
+    assert (warm.start, warm.init, warm.optim.lr_latent) == ("pose-graph", "multiway", 1e-4)
     with pytest.raises(ConfigError, match="start 'scratch' runs no classical step"):
         RunConfig.build(start="scratch", init="icp")
     # the warm start's settings from identity (the benchmark's bunny[identity] rows), not scratch's
-    plain = RunConfig.build(start="pose-graph", init="identity")
+    plain = resolve(RunConfig.build(start="pose-graph", init="identity"), seq).config
     assert (plain.start, plain.init, plain.optim.lr_latent) == ("pose-graph", "identity", 1e-4)
 
 
@@ -134,22 +138,22 @@ def test_trimmed_mask_keeps_the_closest_fraction_of_each_group() -> None:
 
 
 def test_a_turning_camera_from_scratch_gets_the_turning_overlay() -> None:
-    from strep_core.profiles import SCRATCH_OVERLAYS, resolve
+    from strep_core.profiles import SCRATCH_OVERLAYS
     from strep_core.sim.depth3d import simulate_3d
 
     seq = simulate_3d(2000, frames=16)
-    cfg = resolve(RunConfig.build(method="strep", start="scratch"), seq)
+    cfg = resolve(RunConfig.build(method="strep", start="scratch"), seq).config
     assert cfg.profile == "depth-turning"
     assert (cfg.loss.robust, cfg.loss.window) == ("trimmed", 1)
     assert cfg.model.planar_axis == seq.meta["sensor"]["vertical_axis"]
-    assert cfg.model.link_init == SCRATCH_PROFILE["model"]["link_init"]  # the scratch profile still under it
-    given = resolve(RunConfig.build(method="strep", start="scratch", loss={"robust": "huber"}), seq)
+    assert cfg.model.link_init == SCRATCH["model"]["link_init"]  # the scratch profile still under it
+    given = resolve(RunConfig.build(method="strep", start="scratch", loss={"robust": "huber"}), seq).config
     assert (given.loss.robust, given.loss.window) == ("huber", 1)  # what the user gave wins
-    warm = resolve(RunConfig.build(method="strep"), seq)
+    warm = resolve(RunConfig.build(method="strep"), seq).config
     assert (warm.loss.robust, warm.model.planar_axis) == ("truncated", None)  # only from scratch
-    assert RunConfig.model_validate(cfg.model_dump(mode="json")) == cfg  # config.json re-runs it
-    flat = resolve(RunConfig.build(method="strep", start="scratch"), load_sample("sim2d-small"))
-    assert flat.loss.robust == SCRATCH_PROFILE["loss"]["robust"] and flat.model.planar_axis is None
+    assert resolve(RunConfig.model_validate(cfg.model_dump(mode="json")), seq).config == cfg  # config.json re-runs it
+    flat = resolve(RunConfig.build(method="strep", start="scratch"), load_sample("sim2d-small")).config
+    assert flat.loss.robust == SCRATCH["loss"]["robust"] and flat.model.planar_axis is None
     assert set(SCRATCH_OVERLAYS) <= {"depth-turning"}
 
 

@@ -8,17 +8,17 @@ import numpy as np
 import pytest
 
 from strep_core import geometry as g
-from strep_core import profiles
 from strep_core.config import RunConfig
 from strep_core.registration import align_frames, resolve_params
 from strep_core.registration.pairwise import trimmed_distance
+from strep_core.resolve import resolve
 from strep_core.sim.depth3d import simulate_3d
 
 
 @pytest.fixture(scope="module")
 def walk2():
     seq = simulate_3d(2002, frames=16)
-    config = profiles.resolve(RunConfig(method="multiway"), seq)
+    config = resolve(RunConfig(method="multiway"), seq).config
     assert config.profile == "depth-turning"
     return seq, resolve_params(seq, config.classical)
 
@@ -54,7 +54,7 @@ def test_the_yaw_start_with_the_lowest_trimmed_distance_wins_a_turn(walk: int, k
     matches as many points); the trimmed distance chooses the turn. Over the 150 pairs of walks
     0-9 the two choices differ on 10, and the trimmed one is right on all 10 (profiles.md)."""
     seq = simulate_3d(walk, frames=16)
-    params = resolve_params(seq, profiles.resolve(RunConfig(method="multiway"), seq).classical)
+    params = resolve_params(seq, resolve(RunConfig(method="multiway"), seq).config.classical)
     angle, move = _align(seq, params, k)
     assert angle < 3.0 and move < 0.1, (angle, move)
 

@@ -130,6 +130,13 @@ class Settings(BaseSettings):
         le=256,
         description="CPU threads per job when its config leaves `threads` unset; None: cores / max_concurrent_jobs",
     )
+    job_memory_mib: int | None = Field(
+        default=4096,
+        ge=64,
+        le=2**24,
+        description="memory a job's worker may hold (resident, MiB); past it the job fails with that reason and "
+        "the service and the other jobs run on; None: no budget",
+    )
     worker_nice: int = Field(
         default=10,
         ge=0,

@@ -53,6 +53,13 @@ def _lock_data_dir(data_dir: Path) -> IO[str]:
     return handle
 
 
+def check_data_dir_free(data_dir: Path) -> None:
+    """`DataDirBusy` when another service holds ``data_dir`` (checked before starting a server,
+    so a busy folder is one line, not a failed start-up's traceback); a missing folder is free."""
+    if (data_dir / ".lock").exists():
+        _lock_data_dir(data_dir).close()  # taken and released at once
+
+
 class Service:
     """Everything the API needs, owned by the application's lifespan."""
 

@@ -19,6 +19,7 @@ import contextlib
 import logging
 import multiprocessing
 import multiprocessing.connection
+import os
 import queue
 import shutil
 import threading
@@ -45,6 +46,18 @@ log = logging.getLogger("strep.service")
 KILL_AFTER_TERMINATE = 2.0  # seconds between SIGTERM and SIGKILL
 REAP_TIMEOUT = 10.0  # a worker that closed its pipe but does not exit is killed after this
 MAX_MESSAGES_PER_ROUND = 500  # per worker, so one chatty worker cannot starve the others
+MEMORY_POLL = 0.2  # seconds between two looks at the workers' resident memory (with a budget)
+
+
+def resident_bytes(pid: int | None) -> int | None:
+    """The resident memory of process ``pid`` (bytes, from /proc), or None where it cannot be read."""
+    if pid is None:
+        return None
+    try:
+        pages = int(Path(f"/proc/{pid}/statm").read_text().split()[1])
+    except (OSError, ValueError, IndexError):
+        return None
+    return pages * os.sysconf("SC_PAGE_SIZE")
 
 
 @dataclass
@@ -58,6 +71,7 @@ class _Worker:
     kill_deadline: float | None = None
     reap_deadline: float | None = None
     terminated: bool = False
+    over_budget: str | None = None  # why it was killed, when it held more memory than the job's budget
 
 
 class JobService:
@@ -184,7 +198,7 @@ class JobService:
                 "sequence_id": sequence_id,
                 "comparison_id": comparison_id,
                 "method": cfg.method,
-                "config": cfg.model_dump_json(),
+                "config": cfg.model_dump_json(exclude_unset=True),  # the request: resolved by the run
                 "created_at": created,
             }
             for cfg in configs
@@ -273,6 +287,7 @@ class JobService:
                 self._read(w, items)
         if items:
             self._store_and_publish(items)
+        self._enforce_memory()
         self._reap()
         self._enforce_deadlines()
 
@@ -281,7 +296,8 @@ class JobService:
         deadlines = [
             d for w in self._workers.values() for d in (w.cancel_deadline, w.kill_deadline, w.reap_deadline) if d
         ]
-        return max(0.01, min([1.0, *(d - now for d in deadlines)]))
+        poll = MEMORY_POLL if self._workers and self.settings.job_memory_mib is not None else 1.0
+        return max(0.01, min([poll, *(d - now for d in deadlines)]))
 
     def _read(self, w: _Worker, items: list[EventIn | StatusChange]) -> None:
         try:
@@ -294,6 +310,8 @@ class JobService:
                 elif isinstance(msg, DoneMessage):
                     w.done = True
                     fields: tuple[tuple[str, Any], ...] = (("metrics", msg.metrics), ("files", msg.files))
+                    if msg.config is not None:  # the request becomes what ran (its config.json)
+                        fields += (("config", self._public_config(w.job_id, msg.config)),)
                     items.append(StatusChange(w.job_id, ("running",), msg.status, msg.error, fields))
                 elif isinstance(msg, PidMessage):  # a Ray worker's process, known once its actor has started
                     self.store.set_job_fields(w.job_id, pid=msg.pid)
@@ -304,6 +322,13 @@ class JobService:
             w.eof = True
             if w.proc.is_alive():
                 w.proc.kill()
+
+    def _public_config(self, job_id: str, resolved: dict[str, Any]) -> dict[str, Any]:
+        """The resolved config as the API shows it: ``from_model`` as requested (``job:<id>``),
+        not the server path the worker read."""
+        job = self.store.get_job(job_id)
+        requested = (job or {}).get("config", {}).get("from_model")
+        return {**resolved, "from_model": requested} if resolved.get("from_model") else resolved
 
     def _store_and_publish(self, items: Sequence[EventIn | StatusChange]) -> list[StoredEvent]:
         stored = self.store.apply(items)
@@ -320,6 +345,23 @@ class JobService:
             if command == "cancel" and w is not None and w.cancel_deadline is None and not w.done:
                 w.proc.cancel()
                 w.cancel_deadline = time.monotonic() + self.settings.cancel_grace_seconds
+
+    def _enforce_memory(self) -> None:
+        """Kill a worker holding more than ``job_memory_mib``; its job fails saying so."""
+        budget = self.settings.job_memory_mib
+        if budget is None or self.executor.name != "local":  # a Ray worker's pid may be another machine's
+            return
+        for w in self._workers.values():
+            if w.over_budget is not None or w.done or w.proc.exitcode is not None:
+                continue
+            rss = resident_bytes(w.proc.pid)
+            if rss is not None and rss > budget * 2**20:
+                w.over_budget = (
+                    f"the job held {rss / 2**20:.0f} MiB, more than its memory budget of {budget} MiB "
+                    "(STREP_JOB_MEMORY_MIB); give it fewer frames or points, or raise the budget"
+                )
+                log.warning("job %s: %s; killing its worker", w.job_id, w.over_budget)
+                w.proc.kill()
 
     def _enforce_deadlines(self) -> None:
         now = time.monotonic()
@@ -379,7 +421,7 @@ class JobService:
                     w.job_id,
                     ("running",),
                     "failed",
-                    w.proc.failure_message(),
+                    w.over_budget or w.proc.failure_message(),
                     (("exit_code", code),),
                 )
             self._store_and_publish([change])
@@ -402,7 +444,7 @@ class JobService:
                 [StatusChange(job_id, ("queued",), "failed", f"sequence {job['sequence_id']} no longer exists")]
             )
             return False
-        path, selection = source
+        path, selection, scene = source
         try:
             config = RunConfig.model_validate(job["config"])
         except ValidationError as exc:  # queued by an older version whose config no longer validates
@@ -419,8 +461,9 @@ class JobService:
             job_id=job_id,
             source=str(path),
             selection=selection,
+            scene=scene,
             sequence_name=self.sequences.name_of(job["sequence_id"]),  # not "sequence", the stored name
-            config=config.model_dump_json(),
+            config=config.model_dump_json(exclude_unset=True),
             scene_path=str(self.scene_path(job_id)),
             tmp_dir=str(self.tmp_results / job_id),
             out_dir=str(self.result_dir(job_id)),

@@ -24,6 +24,11 @@ class JobSpec(BaseModel):
     job_id: str
     source: str = Field(description="``sample:NAME`` or the stored upload's path")
     selection: str | None = Field(default=None, description="the upload's own frame selection")
+    scene: str | None = Field(
+        default=None,
+        description="the upload read once (its selection applied): what the job reads, unless it "
+        "gives reader options of its own (then the file as uploaded is read again, within the limits)",
+    )
     sequence_name: str | None = Field(default=None, description="an upload's name (its stored file is 'sequence')")
     config: str = Field(description="the `RunConfig` as JSON, parsed once the plugins are imported")
     scene_path: str = Field(description="where the worker writes the scene (`app.services.scenes`)")
@@ -55,6 +60,7 @@ class DoneMessage(BaseModel):
     error: str | None = None
     metrics: dict[str, Any] | None = None
     files: list[str] = Field(default_factory=list)
+    config: dict[str, Any] | None = Field(default=None, description="the resolved `RunConfig` (its config.json)")
 
 
 class PidMessage(BaseModel):
@@ -84,6 +90,7 @@ class ReadRequest(BaseModel):
     max_extract_bytes: int
     extract_dir: str | None = None
     max_points: int | None = None
+    scene_path: str | None = Field(default=None, description="write what was read here (`app.services.scenes`)")
 
 
 class ReadOk(BaseModel):

@@ -25,6 +25,7 @@ from typing import Any
 
 from app.core.config import Settings
 from app.services.protocol import ReadOk, ReadRequest, parse_read_reply
+from app.services.scenes import UPLOAD_SCENE
 from app.services.uploads import ReceivedUpload, UploadError
 from app.services.worker import reader_loop
 from app.store import Store, now_iso
@@ -106,9 +107,15 @@ class ReaderProcess:
         return code
 
     def read(
-        self, path: Path, selection: str | None, max_extract_bytes: int, max_points: int | None = None
+        self,
+        path: Path,
+        selection: str | None,
+        max_extract_bytes: int,
+        max_points: int | None = None,
+        scene_path: Path | None = None,
     ) -> dict[str, Any]:
-        """Read ``path`` as a sequence; returns its summary or raises the reader's `StrepError`."""
+        """Read ``path`` as a sequence (written to ``scene_path`` if given); returns its summary
+        or raises the reader's `StrepError`."""
         with self._lock:
             conn = self._ensure()
             request = ReadRequest(
@@ -117,6 +124,7 @@ class ReaderProcess:
                 max_extract_bytes=max_extract_bytes,
                 extract_dir=str(self.extract_dir),
                 max_points=max_points,
+                scene_path=None if scene_path is None else str(scene_path),
             )
             conn.send(request)
             if not conn.poll(self.timeout):
@@ -230,14 +238,18 @@ class SequenceService:
         row = self.store.get_sequence(sequence_id)
         return _public(row) if row else None
 
-    def source_of(self, sequence_id: str) -> tuple[str, str | None] | None:
-        """``(source, selection)`` for a job's worker: ``sample:NAME`` or the stored file's path."""
+    def source_of(self, sequence_id: str) -> tuple[str, str | None, str | None] | None:
+        """``(source, selection, scene)`` for a job's worker: ``sample:NAME``, or the stored
+        file's path, its selection and the scene it was read into (None for uploads stored
+        before scenes were)."""
         if sequence_id.startswith(SAMPLE_PREFIX):
-            return (sequence_id, None) if sequence_id in self.samples() else None
+            return (sequence_id, None, None) if sequence_id in self.samples() else None
         row = self.store.get_sequence(sequence_id)
         if row is None:
             return None
-        return str(self.settings.data_dir / row["path"]), row["selection"]
+        stored = self.settings.data_dir / row["path"]
+        scene = stored.parent / UPLOAD_SCENE
+        return str(stored), row["selection"], str(scene) if scene.is_file() else None
 
     def name_of(self, sequence_id: str) -> str | None:
         """An uploaded sequence's name (the uploaded file's, unless given): the worker names the
@@ -305,15 +317,22 @@ class SequenceService:
         name = (upload.fields.get("name") or "").strip()
         if len(name) > 200 or not all(ch.isprintable() for ch in name):
             raise ConfigError("name: at most 200 printable characters")
-        try:
-            summary = self.reader.read(
-                upload.path, selection, self.settings.max_inflated_bytes, self.settings.max_points
-            )
-        except StrepError as exc:
-            raise type(exc)(_clean(str(exc), upload.path, upload.filename)) from None
         seq_id = new_id("seq")
         folder = self.settings.uploads_dir / seq_id
         folder.mkdir(parents=True)
+        try:  # read once, into the scene jobs register
+            summary = self.reader.read(
+                upload.path,
+                selection,
+                self.settings.max_inflated_bytes,
+                self.settings.max_points,
+                folder / UPLOAD_SCENE,
+            )
+        except BaseException as exc:
+            shutil.rmtree(folder, ignore_errors=True)
+            if isinstance(exc, StrepError):
+                raise type(exc)(_clean(str(exc), upload.path, upload.filename)) from None
+            raise
         stored = folder / f"sequence{upload.suffix}"
         try:
             upload.path.replace(stored)

@@ -1,14 +1,15 @@
 """Code that runs in child processes (started with the ``spawn`` context).
 
 * `run_job`: one process per job. Runs the job through the core's runner
-  (`strep_core.runner.run_input`): the upload is read here, within the service's limits, and
-  once its frames are selected the scene is written to the job's folder
+  (`strep_core.runner.run_input`) on the upload's scene (read once, at upload: `job_input`),
+  and once its frames are selected the scene is written to the job's folder
   (`app.services.scenes`) and a `app.rrd.RerunRecorder` opens ``recording.rrd``
   (recording id = job id); every event goes through the job's pipe. The result files are
   written into a temporary folder renamed into place, then a final `DoneMessage` is sent.
   The cancel flag is a ``multiprocessing.Event`` the core checks between iterations.
-* `reader_loop`: a long-lived process that reads uploads to validate them, so a reader that
-  crashes or runs away never takes the service with it.
+* `reader_loop`: a long-lived process that reads each upload once, within the service's
+  limits, and writes it as a scene (`app.services.scenes`), so a reader that crashes or runs
+  away never takes the service with it.
 
 The spec and the messages are the models of `app.services.protocol`. The core (torch
 included) is imported inside the functions, after the child has set its thread limits.
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib
+import json
 import math
 import multiprocessing
 import multiprocessing.connection
@@ -117,16 +119,10 @@ def load_source(
     max_points: int | None = None,
     options: dict[str, Any] | None = None,
 ) -> Any:
-    """The `Sequence` behind a job's or an upload's source (``sample:NAME`` or a stored file).
-
-    A stored file is read within the service's limits (bytes inflated, points; see
-    `strep_core.io.limits`). A ``.zip`` is extracted under ``extract_dir`` (a folder the
-    service sweeps), if given. ``options`` go to the reader (`RunConfig.data`).
-    """
-    from strep_core.runner import load_input
-
-    if source.startswith("sample:"):
-        return load_input(source, frames=selection, options=options)
+    """An uploaded file as uploaded, read within the service's limits (bytes inflated, points;
+    see `strep_core.io.limits`): by the upload reader, and by a job that gives reader options
+    of its own. A ``.zip`` is extracted under ``extract_dir`` (a folder the service sweeps), if
+    given. ``options`` go to the reader (`RunConfig.data`)."""
     from strep_core.io import load_sequence
 
     if extract_dir is not None:
@@ -135,6 +131,25 @@ def load_source(
     if max_points is not None:
         limits["max_points"] = max_points
     return load_sequence(source, frames=selection, extract_dir=extract_dir, **limits, **(options or {}))
+
+
+def job_input(spec: JobSpec, options: dict[str, Any]) -> Any:
+    """The sequence a job registers (before its own frame selection): the upload's scene, read
+    once at upload, as the command line reads any input; a bundled sample likewise; the file
+    as uploaded only when the job gives reader options of its own."""
+    from strep_core.runner import load_input
+
+    if spec.scene is not None and not options:
+        seq = load_input(spec.scene)
+    elif spec.source.startswith("sample:"):
+        seq = load_input(spec.source, options=options)
+    else:
+        seq = load_source(
+            spec.source, spec.selection, spec.max_extract_bytes, spec.extract_dir, spec.max_points, options
+        )
+    if spec.sequence_name:  # an upload: its name, not its stored file's ("sequence")
+        seq.name = spec.sequence_name
+    return seq
 
 
 class JobRecording:
@@ -204,12 +219,7 @@ def run_job(spec: JobSpec, conn: multiprocessing.connection.Connection, cancel: 
                 config = config.model_copy(update={"threads": spec.threads})
 
             def read(options: dict[str, Any]) -> Any:
-                seq = load_source(
-                    spec.source, spec.selection, spec.max_extract_bytes, spec.extract_dir, spec.max_points, options
-                )
-                if spec.sequence_name:  # an upload: its name, not its stored file's ("sequence")
-                    seq.name = spec.sequence_name
-                return seq
+                return job_input(spec, options)
 
             def job_sinks(scene: Any) -> list[Any]:
                 """Once the frames are selected: the scene for the service, the recording."""
@@ -222,7 +232,8 @@ def run_job(spec: JobSpec, conn: multiprocessing.connection.Connection, cancel: 
             result = run_input(read, config, out_dir=tmp_dir, sink=PipeSink(conn), sinks=job_sinks, cancel=cancel)
             files = sorted({*result.files, *([RECORDING] if (tmp_dir / RECORDING).is_file() else [])})
             os.replace(tmp_dir, spec.out_dir)  # all files appear at once, never half-written
-            message = DoneMessage(status="succeeded", metrics=_finite(result.metrics), files=files)
+            resolved = json.loads(result.config.model_dump_json())
+            message = DoneMessage(status="succeeded", metrics=_finite(result.metrics), files=files, config=resolved)
         except Cancelled as exc:
             message = DoneMessage(status="cancelled", error=str(exc) or "cancelled")
         except StrepError as exc:
@@ -271,6 +282,10 @@ def reader_loop(conn: multiprocessing.connection.Connection, plugins: list[str],
             seq = load_source(
                 request.path, request.selection, request.max_extract_bytes, request.extract_dir, request.max_points
             )
+            if request.scene_path is not None:  # read once: jobs register this file
+                from app.services.scenes import write_scene
+
+                write_scene(seq, request.scene_path, exact=True)
             reply = ReadOk(summary=summarize(seq))
         except StrepError as exc:
             reply = ReadFailed(error_class=type(exc).__name__, message=str(exc))

@@ -207,10 +207,11 @@ class RunSpec:
         )
 
     def planned_iterations(self) -> int:
-        from strep_core.config import SCRATCH_PROFILE, OptimConfig
+        from strep_core.config import OptimConfig
+        from strep_core.profiles import START_OVERLAYS
 
         if self.setting == "cold":  # from scratch: the profile's count, not the case's warm-start cap
-            n = int(SCRATCH_PROFILE["optim"]["iterations"])
+            n = int(START_OVERLAYS["scratch"]["optim"]["iterations"])
             return n if self.iterations is None else min(n, self.iterations)
         n = OptimConfig().iterations
         if self.case.bench.iterations is not None:

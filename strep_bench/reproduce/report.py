@@ -97,7 +97,7 @@ def build_report(
         "loss; cold runs are the paper's setting, with its departures: w starts at 1, the latents learn at "
         "1e-2 (paper 1e-4), Chamfer is Huber over temporal neighbours and, from halfway, truncated over loop "
         "pairs (frames close in the current estimate, far in time; each match weighted window / span) "
-        "(`strep_core.config.SCRATCH_PROFILE`, measured in `docs/design/from-scratch.md`). A depth camera "
+        "(`strep_core.profiles.START_OVERLAYS['scratch']`, measured in `docs/design/from-scratch.md`). A depth camera "
         "the probe finds turning in place (the simulated AVD-like walks) gets more from scratch: Chamfer "
         "trimmed to each frame pair's closest half of the matches, consecutive frames only, and pose "
         "corrections kept level, a turn about the camera's vertical axis (paper: 6 DoF) "

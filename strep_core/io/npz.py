@@ -19,6 +19,9 @@ sensor         str                          optional ``"laser"`` or ``"depth"`` 
 vertical_axis  (3,) float                   optional: the sensor's up direction in its own
                                             frame (a level depth camera, OpenCV axes: 0 -1 0)
 colors         (M, 3) uint8                 optional per-point colours (viewers only)
+meta           str                          optional JSON object: what the reader recorded
+                                            (``Sequence.meta``; its ``sensor`` wins over the
+                                            two keys above)
 ============== ============================ ==============================================
 
 Object arrays are refused (no pickles). Arrays are read in chunks, each charged to the read's
@@ -29,6 +32,7 @@ inflated.
 
 from __future__ import annotations
 
+import json
 import math
 import zipfile
 from pathlib import Path
@@ -120,6 +124,14 @@ def read_npz(
                 raise FormatError(f"{path}: 'vertical_axis' must be 3 finite numbers, not all 0")
             sensor["vertical_axis"] = [float(c) for c in axis]
         meta["sensor"] = sensor
+    if "meta" in data:
+        try:
+            recorded = json.loads(str(data["meta"]))
+        except json.JSONDecodeError as exc:
+            raise FormatError(f"{path}: 'meta' is not JSON ({exc})") from exc
+        if not isinstance(recorded, dict):
+            raise FormatError(f"{path}: 'meta' must be a JSON object")
+        meta = {**recorded, **{k: v for k, v in meta.items() if k != "sensor"}}
     try:
         seq = Sequence(
             frames=chunks,
@@ -139,12 +151,16 @@ def read_npz(
     return seq.select(frames) if frames else seq
 
 
-def write_npz(seq: Sequence, path: str | Path, *, compressed: bool = True) -> None:
-    """Write ``seq`` as ``.npz`` (points + counts layout, float32 points)."""
+def write_npz(seq: Sequence, path: str | Path, *, compressed: bool = True, exact: bool = False) -> None:
+    """Write ``seq`` as ``.npz`` (points + counts layout, float32 points).
+
+    ``exact``: float64 points and origins and the reader's whole ``meta`` (JSON), so the file
+    reads back as the very sequence written (the service's stored uploads)."""
+    dtype = np.float64 if exact else np.float32
     arrays: dict[str, np.ndarray] = {
-        "points": np.concatenate(seq.frames).astype(np.float32),
+        "points": np.concatenate(seq.frames).astype(dtype),
         "counts": np.array([len(f) for f in seq.frames], dtype=np.int64),
-        "origins": np.asarray(seq.origins, dtype=np.float32),
+        "origins": np.asarray(seq.origins, dtype=dtype),
         "indices": np.asarray(seq.indices),
         "unit": np.array(seq.unit),
         "name": np.array(seq.name),
@@ -160,6 +176,10 @@ def write_npz(seq: Sequence, path: str | Path, *, compressed: bool = True) -> No
         arrays["sensor"] = np.array(sensor["kind"])
         if sensor.get("vertical_axis") is not None:
             arrays["vertical_axis"] = np.asarray(sensor["vertical_axis"], dtype=np.float64)
+    if exact and isinstance(seq.meta, dict):
+        arrays["meta"] = np.array(
+            json.dumps({k: v for k, v in seq.meta.items() if k not in ("source", "format")}, default=str)
+        )
     save = np.savez_compressed if compressed else np.savez
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp.npz")

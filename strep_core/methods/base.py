@@ -61,6 +61,7 @@ class MethodInfo:
     description: str
     learned: bool
     total_iterations: Callable[[Sequence, RunConfig], int]
+    counts: str = "iterations"  # what one of its iterations is, for people ("frames" for incremental methods)
 
 
 _TABLE: dict[str, MethodInfo] = {}
@@ -72,6 +73,7 @@ def method(
     description: str,
     learned: bool = False,
     total_iterations: Callable[[Sequence, RunConfig], int] | None = None,
+    counts: str | None = None,
 ) -> Callable[[MethodFn], MethodFn]:
     """Decorator adding a method function to the table under ``name`` (a plugin may add its own)."""
 
@@ -82,6 +84,7 @@ def method(
             description=description,
             learned=learned,
             total_iterations=total_iterations or (lambda seq, cfg: len(seq)),
+            counts=counts or ("iterations" if learned else "frames"),
         )
         return fn
 

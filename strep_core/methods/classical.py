@@ -122,6 +122,7 @@ def icp_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: RunConte
     "multiway",
     description="Open3D pose graph: ICP odometry edges + proximity loop closures, Levenberg-Marquardt",
     total_iterations=lambda seq, cfg: 2 * len(seq),
+    counts="steps (each frame's ICP, then its loop closures)",
 )
 def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: RunContext) -> MethodOutput:
     """Multiway registration with an Open3D pose graph.

@@ -30,7 +30,8 @@ def _iterations(seq: Sequence, cfg: RunConfig) -> int:
 
 @method(
     "strep",
-    description="STREP (Wang et al.): temporally linked latents + PointNet pose decoder, Chamfer + occupancy",
+    description="STREP (Wang et al.): temporally linked latents + PointNet pose decoder, Chamfer over frame "
+    "neighbourhoods (the occupancy term is off by default: loss.occupancy_weight 0)",
     learned=True,
     total_iterations=_iterations,
 )

@@ -87,7 +87,8 @@ def job_public(service: Service, job_id: str) -> JobPublic:
     description="The body is a `RunConfig` (method, seed, frames, init, model, loss, optim...) plus `sequence_id`.",
 )
 def create_job(body: JobCreate, service: ServiceDep) -> JobPublic:
-    config = RunConfig.model_validate(body.model_dump(exclude={"sequence_id"}))
+    # the fields given only: the run's resolve stage fills the rest from the data (strep_core.resolve)
+    config = RunConfig.model_validate(body.model_dump(exclude={"sequence_id"}, exclude_unset=True))
     validate_run(service, body.sequence_id, config)
     (job_id,), _ = service.jobs.submit(body.sequence_id, [config])
     return job_public(service, job_id)

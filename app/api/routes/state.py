@@ -89,8 +89,12 @@ async def preset() -> PresetPublic:
 
 
 def default_iterations(start: str) -> int:
-    """The iterations a learned run from ``start`` gets when a request names none."""
-    return RunConfig.build(method="strep", start=start).optim.iterations
+    """The iterations a learned run from ``start`` gets when a request names none: the start's
+    overlay over the defaults (`strep_core.profiles.START_OVERLAYS`, applied by the resolve stage)."""
+    from strep_core.profiles import START_OVERLAYS
+
+    default = RunConfig.build(method="strep").optim.iterations
+    return int(START_OVERLAYS.get(start, {}).get("optim", {}).get("iterations", default))
 
 
 class JobState:

@@ -1,11 +1,14 @@
-"""Demo methods that cost no CPU, for developing the web page and testing the service.
+"""Demo methods for the service's tests (not shipped: they live under ``tests/plugins``).
 
-Enable them with ``STREP_PLUGINS=app.demo`` (the service and its workers import the module,
-which registers the methods). Both emit an `IterationEvent` every ``optim.event_interval``
-of ``optim.iterations`` steps of `STEP_SECONDS` each, with a falling fake loss.
+Enable them with ``STREP_PLUGINS=strep_demo_methods`` and ``tests/plugins`` on the Python path
+(``tests/conftest.py`` does both for the tests' processes). The sleeping ones emit an
+`IterationEvent` every ``optim.event_interval`` of ``optim.iterations`` steps of `STEP_SECONDS`
+each, with a falling fake loss.
 
 * ``demo-sleep`` checks the cancel flag between steps, like every real method;
-* ``demo-stubborn`` never does, to exercise the service's terminate-after-grace path.
+* ``demo-stubborn`` never does, to exercise the service's terminate-after-grace path;
+* ``demo-hog`` allocates `HOG_STEP_MIB` every step up to `HOG_LIMIT_MIB`, to exercise the
+  per-job memory budget (``STREP_JOB_MEMORY_MIB``).
 """
 
 from __future__ import annotations
@@ -21,6 +24,8 @@ from strep_core.methods.base import MethodOutput, RunContext, method
 from strep_core.sequence import Sequence
 
 STEP_SECONDS = 0.02
+HOG_STEP_MIB = 32
+HOG_LIMIT_MIB = 2048  # a bound of its own, should the budget not stop it
 
 
 def _steps(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: RunContext, *, check_cancel: bool) -> MethodOutput:
@@ -57,3 +62,13 @@ def demo_sleep(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: RunConte
 @method("demo-stubborn", description="demo: like demo-sleep but ignores cancellation", total_iterations=_total)
 def demo_stubborn(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: RunContext) -> MethodOutput:
     return _steps(seq, init, config, ctx, check_cancel=False)
+
+
+@method("demo-hog", description="demo: allocates memory until the job's budget stops it", total_iterations=_total)
+def demo_hog(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: RunContext) -> MethodOutput:
+    held = []
+    for _ in range(HOG_LIMIT_MIB // HOG_STEP_MIB):
+        ctx.check_cancel()
+        held.append(np.ones(HOG_STEP_MIB * 2**20 // 8))  # written: resident, not only reserved
+        time.sleep(STEP_SECONDS)
+    return MethodOutput(poses=init.copy(), iterations=len(held))
