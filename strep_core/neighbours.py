@@ -121,6 +121,7 @@ class FrameIndex:
             slot = brute_nearest(queries, self.points, frames)
             return slot, torch.ones_like(slot, dtype=torch.bool)
         p, q, d = queries.shape
+        workers = torch.get_num_threads()  # the run's threads (``config.threads``)
         qs = queries.detach().double().numpy().reshape(-1, d)
         fr = np.repeat(frames.numpy(), q)
         lifted = _lift(qs, fr, self._lift)
@@ -128,12 +129,12 @@ class FrameIndex:
         found = np.ones(len(qs), bool)
         near = np.zeros(len(qs), bool) if within is None else np.repeat(within.numpy(), q)
         if near.any():
-            _, i = self._tree.query(lifted[near], k=1, distance_upper_bound=limit, workers=-1)
+            _, i = self._tree.query(lifted[near], k=1, distance_upper_bound=limit, workers=workers)
             ok = i < self._tree.n
             idx[near] = np.where(ok, i, 0)
             found[near] = ok
         if (~near).any():
-            _, idx[~near] = self._tree.query(lifted[~near], k=1, workers=-1)
+            _, idx[~near] = self._tree.query(lifted[~near], k=1, workers=workers)
         slot = idx - self._starts[fr]
         # a query farther from its frame than the lift (never in practice): brute force, exactly
         wrong = found & ((slot < 0) | (slot >= self._starts[fr + 1] - self._starts[fr]))
