@@ -160,16 +160,17 @@ def pair_chamfer(
     w = weight[:, None] * valid
     near = ~spatial[:, None]
 
-    def cost(kernel: Robust) -> torch.Tensor:
+    def part(kernel: Robust, rows: torch.Tensor) -> torch.Tensor:
+        if kernel == "trimmed":  # a weighted mean of the kept r2, scaled by the rows' share
+            kept = w * rows * trimmed_rows(d2.detach(), valid, keep)
+            return (r2 * kept).sum() / kept.sum().clamp_min(1e-12) * ((valid & rows).sum() / n)
         c = match_cost(d2, r2, plane=plane, robust=kernel, threshold=threshold)
-        return torch.where(found, c, torch.full_like(c, t2))
+        c = torch.where(found, c, torch.full_like(c, t2))
+        return (c * w * rows).sum() / n
 
-    total = (cost(loop_robust) * w * spatial[:, None]).sum() / n
-    if robust != "trimmed":
-        return total + (cost(robust) * w * near).sum() / n
-    wk = w * near * trimmed_rows(d2.detach(), valid, keep)
-    share = (valid & near).sum() / n
-    return total + (r2 * wk).sum() / wk.sum().clamp_min(1e-12) * share
+    if robust == loop_robust and robust != "trimmed":
+        return part(robust, torch.ones_like(near))
+    return part(robust, near) + part(loop_robust, ~near)
 
 
 def trimmed_rows(d2: torch.Tensor, valid: torch.Tensor, keep: float) -> torch.Tensor:

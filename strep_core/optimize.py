@@ -343,8 +343,7 @@ def _chamfer(run: _Run, plan: BatchPlan, poses: torch.Tensor, threshold: float, 
     d = prep.dim
     width = prep.points.shape[1]
     slot, valid = sample_slots(prep.counts.index_select(0, plan.frames), run.oc.points_per_frame, width, run.generator)
-    query_frames = plan.frames.index_select(0, plan.src)
-    local = prep.points[query_frames[:, None], slot.index_select(0, plan.src)]  # (P, Q, D)
+    local = _gather(prep.points, plan.frames.index_select(0, plan.src), slot.index_select(0, plan.src))
     rel = g.inverse(poses.index_select(0, plan.dst)) @ poses.index_select(0, plan.src)
     moved = torch.baddbmm(rel[:, None, :d, d], local, rel[:, :d, :d].transpose(1, 2))
     loop_robust = lc.loop_robust or lc.robust
@@ -358,11 +357,10 @@ def _chamfer(run: _Run, plan: BatchPlan, poses: torch.Tensor, threshold: float, 
     found_slot, found = prep.index.nearest(moved.detach(), targets, within=within, limit=threshold)
     found_slot, found = found_slot.to(moved.device), found.to(moved.device)
     clock.lap("nearest_neighbours")
-    rows = targets[:, None]
     return losses.pair_chamfer(
         moved,
-        prep.points[rows, found_slot],
-        None if prep.normals is None else prep.normals[rows, found_slot],
+        _gather(prep.points, targets, found_slot),
+        None if prep.normals is None else _gather(prep.normals, targets, found_slot),
         valid.index_select(0, plan.src),
         found,
         plan.spatial,
@@ -372,6 +370,13 @@ def _chamfer(run: _Run, plan: BatchPlan, poses: torch.Tensor, threshold: float, 
         threshold=threshold,
         keep=lc.trim_keep,
     )
+
+
+def _gather(table: torch.Tensor, frames: torch.Tensor, slot: torch.Tensor) -> torch.Tensor:
+    """``(P, Q, D)`` rows ``slot[p, q]`` of frame ``frames[p]`` of a padded ``(K, N, D)`` table."""
+    k, n, d = table.shape
+    flat = (frames[:, None] * n + slot).reshape(-1)
+    return table.reshape(k * n, d).index_select(0, flat).view(*slot.shape, d)
 
 
 def _occupancy(run: _Run, plan: BatchPlan, poses: torch.Tensor, *, warm: bool) -> torch.Tensor:
@@ -384,7 +389,7 @@ def _occupancy(run: _Run, plan: BatchPlan, poses: torch.Tensor, *, warm: bool) -
     slot, valid = sample_slots(
         prep.counts.index_select(0, plan.frames), lc.occupancy_points, prep.points.shape[1], run.occ_generator
     )
-    hits = g.apply(p, prep.points[plan.frames[:, None], slot])  # (B, S, D)
+    hits = g.apply(p, _gather(prep.points, plan.frames, slot))  # (B, S, D)
     sensors = g.apply(p, prep.origins.index_select(0, plan.frames)[:, None, :]).expand_as(hits)
     hits, sensors = hits[valid], sensors[valid]
     free = losses.free_space_samples(sensors, hits, run.occ_generator, per_ray=lc.free_samples)

@@ -79,7 +79,8 @@ def _flat_reference(world, normals, frame, src, target, weights, robust, loop_ro
 
 
 @pytest.mark.parametrize(
-    ("robust", "loop_robust"), [("truncated", "truncated"), ("huber", "truncated"), ("trimmed", "huber")]
+    ("robust", "loop_robust"),
+    [("truncated", "truncated"), ("huber", "truncated"), ("trimmed", "huber"), ("trimmed", "trimmed")],
 )
 def test_pair_chamfer_in_the_targets_axes_is_the_world_chamfer(robust: str, loop_robust: str) -> None:
     """Distances and point-to-plane residuals do not depend on the axes they are measured in."""
