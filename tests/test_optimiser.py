@@ -3,6 +3,8 @@ batch plan and query samples, and the decoder's pooling (docs/design/optimiser.m
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import pytest
 import torch
@@ -162,3 +164,64 @@ def test_decoder_pools_then_rectifies_as_the_paper_rectifies_then_pools() -> Non
     h = torch.relu(dec.first_points(pts) + dec.first_latent(z)[:, None, :])
     reference = dec.out(dec.head(dec.point_mlp(h).amax(dim=1)))  # ReLU on every point, then max
     assert torch.allclose(dec(pts, z), reference, atol=1e-6)
+
+
+_READS = ("numpy", "item", "tolist", "__float__", "__int__", "__bool__")
+
+
+def _brute_run(monkeypatch, seq, cfg, reads: list[int] | None = None):
+    """A run with the GPU's search (brute force) on the CPU, counting host reads per iteration."""
+    import strep_core.prepare as prepare_module
+    from strep_core.events import NullSink
+    from strep_core.methods.base import RunContext
+    from strep_core.optimize import optimize
+
+    monkeypatch.setattr(prepare_module, "FrameIndex", lambda p, c: FrameIndex(p, c, backend="brute"))
+    if reads is not None:
+        for name in _READS:
+            fn = getattr(torch.Tensor, name)
+
+            def counted(self, *a, _fn=fn, **k):
+                if not sys._getframe(1).f_globals.get("__name__", "").startswith("torch.optim"):
+                    reads[-1] += 1
+                return _fn(self, *a, **k)
+
+            monkeypatch.setattr(torch.Tensor, name, counted)
+
+    class Ctx(RunContext):
+        def check_cancel(self) -> None:  # once before every iteration
+            if reads is not None:
+                reads.append(0)
+
+    init = np.broadcast_to(np.eye(3), (len(seq), 3, 3)).copy()
+    return optimize(seq, init, cfg, Ctx(NullSink(), None, 0.0), variant="strep")
+
+
+def test_the_gpus_search_reads_nothing_back_between_events(monkeypatch) -> None:
+    """With brute-force search (a GPU's path) an iteration reads no tensor on the host, but for the
+    loop pairs' refresh (every pair_interval iterations) and the events."""
+    from strep_core.samples import load_sample
+
+    seq = load_sample("sim2d-small", frames="0:24")
+    cfg = RunConfig.build(method="strep", start="scratch", threads=1, optim={"iterations": 20, "event_interval": 8})
+    reads = [0]
+    _brute_run(monkeypatch, seq, cfg, reads)
+    # reads[i + 1]: during iteration i (events after 8, 16 and 20 iterations; a refresh at 10)
+    per_iteration = reads[1:]
+    events, refreshes = {7, 15, 19}, {10}  # (19: the last event, the final pass and the model)
+    assert all(r == 0 for i, r in enumerate(per_iteration) if i not in events | refreshes), per_iteration
+    assert all(per_iteration[i] > 0 for i in events | refreshes)
+
+
+def test_the_gpus_search_gives_the_kd_trees_poses(monkeypatch) -> None:
+    from strep_core.events import NullSink
+    from strep_core.methods.base import RunContext
+    from strep_core.optimize import optimize
+    from strep_core.samples import load_sample
+
+    seq = load_sample("sim2d-small", frames="0:24")
+    cfg = RunConfig.build(method="strep", start="scratch", threads=1, optim={"iterations": 30})
+    init = np.broadcast_to(np.eye(3), (len(seq), 3, 3)).copy()
+    tree = optimize(seq, init, cfg, RunContext(NullSink(), None, 0.0), variant="strep")
+    brute = _brute_run(monkeypatch, seq, cfg)
+    np.testing.assert_allclose(brute.poses, tree.poses, atol=1e-3 * seq.scale())
