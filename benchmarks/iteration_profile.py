@@ -164,6 +164,69 @@ def profile_device(args: argparse.Namespace, device: str) -> dict[str, Any]:
     return row
 
 
+def neighbour_search(args: argparse.Namespace, device: str, repeats: int = 15) -> dict[str, float]:
+    """Milliseconds of one step's nearest-neighbour search by each method, at the ground-truth poses.
+
+    The step's shape as late in a from-scratch run: every frame, its temporal pairs and its loop pairs
+    (``loss.loop_radius_fraction`` at the true positions), ``optim.points_per_frame`` queries a frame.
+    """
+    from strep_core import geometry as g
+    from strep_core.neighbours import FrameIndex, nearest_in_frame
+    from strep_core.optimize import _gather
+    from strep_core.pairs import frame_pairs
+    from strep_core.plan import build_plan, sample_slots
+    from strep_core.prepare import prepare
+    from strep_core.runner import load_scene
+
+    cfg = _config(args, device)
+    torch.set_num_threads(args.threads or torch.get_num_threads())
+    seq = load_scene(args.input, cfg)
+    assert seq.poses is not None, "the search is timed at the ground-truth poses"
+    dev = torch.device(device)
+    prep = prepare(seq, seq.poses, cfg, dev, np.random.default_rng(0))
+    d, lc = prep.dim, cfg.loss
+    loops = frame_pairs(prep.num_frames, 0, positions=prep.init[:, :d, d].cpu().numpy(), radius=lc.loop_radius_fraction)
+    plan = build_plan(np.arange(prep.num_frames), loops, window=lc.window, span_weight=True, device=dev)
+    gen = torch.Generator(device=dev).manual_seed(0)
+    slot, _ = sample_slots(prep.counts, cfg.optim.points_per_frame, prep.points.shape[1], gen)
+    src_frames, dst_frames = plan.frames[plan.src], plan.dst_frames
+    poses = prep.init
+    rel = g.inverse(poses[dst_frames]) @ poses[src_frames]
+    moved = g.apply(rel, _gather(prep.points, src_frames, slot[plan.src]))
+    world = g.apply(poses, prep.points)  # (K, N, D): the old search ran over the world points
+    n = prep.counts_host
+    flat = torch.cat([world[k, : n[k]] for k in range(len(n))]).cpu().numpy()
+    frame = np.repeat(np.arange(len(n)), n)
+    starts = torch.as_tensor(np.r_[0, np.cumsum(n)[:-1]], device=dev)
+    src = (starts[src_frames][:, None] + slot[plan.src]).reshape(-1).cpu().numpy()
+    tw = np.repeat(dst_frames.cpu().numpy(), slot.shape[1])
+
+    def timed(fn: Any) -> float:
+        fn()
+        ts = []
+        for _ in range(repeats):
+            t = time.perf_counter()
+            fn()
+            if device.startswith("cuda"):
+                torch.cuda.synchronize()
+            ts.append(time.perf_counter() - t)
+        return 1e3 * float(np.median(ts))
+
+    out = {"queries": float(moved.shape[0] * moved.shape[1]), "pairs": float(moved.shape[0])}
+    brute = FrameIndex(prep.points, prep.counts, backend="brute")
+    out["brute force, chunked (ms)"] = timed(lambda: brute.nearest(moved, dst_frames))
+    if device == "cpu":
+        tree = FrameIndex(prep.points, prep.counts, backend="tree")
+        out["KD-tree rebuilt over world points (before, ms)"] = timed(lambda: nearest_in_frame(flat, frame, src, tw))
+        out["KD-tree over static local points (ms)"] = timed(lambda: tree.nearest(moved, dst_frames))
+        within = plan.spatial if (lc.loop_robust or lc.robust) == "truncated" else None
+        thr = lc.threshold_start or lc.threshold
+        out["  loop pairs within the threshold (ms)"] = timed(
+            lambda: tree.nearest(moved, dst_frames, within=within, limit=thr)
+        )
+    return out
+
+
 def _under_op(event: Any) -> bool:
     parent = event.cpu_parent
     while parent is not None:
@@ -207,8 +270,16 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=None)
     parser.add_argument("--set", action="append", default=[], help="config override, e.g. loss.window=3")
     parser.add_argument("--json", type=Path, default=None, help="write the rows here")
+    parser.add_argument("--neighbours", action="store_true", help="time only the nearest-neighbour search methods")
     args = parser.parse_args()
     devices = args.device or (["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"])
+    if args.neighbours:
+        found = {d: neighbour_search(args, d) for d in devices}
+        for d, row in found.items():
+            print(f"{args.input} on {d}: " + ", ".join(f"{k} {v:.1f}" for k, v in row.items()))
+        if args.json:
+            args.json.write_text(json.dumps(found, indent=2) + "\n")
+        return
     rows = [profile_device(args, d) for d in devices]
     print(f"{args.method} from scratch on {args.input}: {rows[0]['frames']} frames, {args.iterations} iterations")
     print(table(rows))
