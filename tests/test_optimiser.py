@@ -155,15 +155,18 @@ def test_query_samples_are_stratified() -> None:
             assert (kept >= torch.floor(j * n / 32)).all() and (kept <= torch.floor((j + 1) * n / 32)).all()
 
 
-def test_decoder_pools_then_rectifies_as_the_paper_rectifies_then_pools() -> None:
+@pytest.mark.parametrize("batch_norm", [False, True])
+def test_decoder_pools_then_rectifies_as_the_paper_rectifies_then_pools(batch_norm: bool) -> None:
+    """Channels first, pool before the last ReLU: the function of Linear + ReLU per point, then max."""
     torch.manual_seed(0)
     cfg = ModelConfig()
-    dec = PoseDecoder(2, 16, cfg.point_layers, cfg.head_layers)
+    dec = PoseDecoder(2, 16, cfg.point_layers, cfg.head_layers, batch_norm=batch_norm)
     torch.nn.init.normal_(dec.out.weight)
     pts, z = torch.randn(8, 16, 2), torch.randn(8, 16)
-    h = torch.relu(dec.first_points(pts) + dec.first_latent(z)[:, None, :])
+    got = dec(pts, z)
+    h = torch.relu(dec.first_norm(dec.first_points(pts) + dec.first_latent(z)[:, None, :]))
     reference = dec.out(dec.head(dec.point_mlp(h).amax(dim=1)))  # ReLU on every point, then max
-    assert torch.allclose(dec(pts, z), reference, atol=1e-6)
+    assert torch.allclose(got, reference, atol=1e-5)
 
 
 _READS = ("numpy", "item", "tolist", "__float__", "__int__", "__bool__")
