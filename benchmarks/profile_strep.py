@@ -45,13 +45,14 @@ def main() -> None:
     args = parser.parse_args()
 
     from strep_core import geometry as g
-    from strep_core.batching import batch_size, prepare
+    from strep_core.batching import batch_size
     from strep_core.config import RunConfig
     from strep_core.events import NullSink
     from strep_core.io.deepmapping import read_deepmapping
     from strep_core.methods.base import RunContext
     from strep_core.model import StrepModel
     from strep_core.optimize import optimize
+    from strep_core.prepare import prepare
 
     seq = read_deepmapping(args.data)
     raw: dict = {"method": args.method, "threads": args.threads, "optim": {"iterations": args.iterations}}
@@ -69,7 +70,7 @@ def main() -> None:
     n = max(out.iterations, 1)
     tm = out.timings
     sections = [
-        "batching",
+        "plan",
         "decoder_forward",
         "chamfer",
         "nearest_neighbours",
@@ -96,7 +97,7 @@ def main() -> None:
     opt = torch.optim.Adam(model.parameters(), lr=1e-4)
     b = batch_size(prep.num_frames, cfg.optim.batch_frames) or prep.num_frames
     frames = torch.arange(b)
-    occ_n = b * min(cfg.loss.occupancy_points, int(np.diff(prep.starts).max())) * (1 + cfg.loss.free_samples)
+    occ_n = b * min(cfg.loss.occupancy_points, int(prep.counts_host.max())) * (1 + cfg.loss.free_samples)
     occ_x = torch.randn(occ_n, prep.dim)
     times = []
     for _ in range(max(5, min(n, 20))):

@@ -98,7 +98,11 @@ class RunConfig(Section):
     )
     method: str = Field(default="strep", max_length=64, description="a name from `strep methods`")
     seed: int = Field(default=0, ge=0, le=2**31 - 1)
-    device: DeviceName = "cpu"
+    device: DeviceName = Field(
+        default="auto",
+        description="torch device of the learned methods: auto = cuda when torch sees one, else cpu "
+        "(`strep_core.device.resolve_device`)",
+    )
     threads: int | None = Field(default=None, ge=1, le=256, description="torch CPU threads; None: all cores")
     init: InitName = Field(
         default="auto",

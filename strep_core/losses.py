@@ -8,13 +8,11 @@ Layout of a batch of frames: points of all frames concatenated into ``(M, D)`` w
 int64 array ``frame (M,)`` giving each point's frame number within the batch (``0..B-1``).
 Frames may have different numbers of points (3D), so nothing here assumes equal sizes.
 
-Nearest neighbours are searched on detached coordinates with one `scipy.spatial.cKDTree`
-over the whole batch, *lifted* by the frame number: a point ``p`` of frame ``j`` is stored as
-``(p, C j)`` with ``C`` larger than the batch's extent, so a query ``(q, C j)`` can only
-find points of frame ``j``. One tree build and one query call (``workers=-1``) serve every
-frame pair of the neighbourhood, with no Python loop over frames and no ``N^2`` memory.
-The matched points are then gathered from the differentiable tensor, so gradients reach
-both frames' poses. Cost: ``O(M log M)`` for the tree, ``O(Q log M)`` for ``Q`` queries.
+The learned loop's Chamfer term is `pair_chamfer`: matches laid out per frame pair ``(P, Q)``,
+each query already moved into its target frame's axes (distances are the same in any frame).
+Nearest neighbours are found by `strep_core.neighbours` on detached coordinates, and the matched
+points gathered differentiably, so gradients reach both frames' poses. The flat-layout helpers
+(`chamfer_matches`, `neighbourhood_chamfer`, `chamfer`) serve one-off comparisons and tests.
 """
 
 from __future__ import annotations
@@ -26,116 +24,10 @@ import torch
 import torch.nn.functional as F
 from scipy.spatial import cKDTree
 
+from strep_core.neighbours import nearest_in_frame
+from strep_core.pairs import pair_queries
+
 Robust = Literal["none", "truncated", "huber", "trimmed"]
-
-
-# --------------------------------------------------------------------------------------------
-# Nearest neighbours
-
-
-def _lift(points: np.ndarray, frame: np.ndarray, c: float) -> np.ndarray:
-    return np.concatenate([points, (c * frame.astype(np.float64))[:, None]], 1)
-
-
-def frame_pairs(
-    num_frames: int,
-    window: int,
-    *,
-    positions: np.ndarray | None = None,
-    radius: float | None = None,
-    max_per_frame: int = 8,
-) -> np.ndarray:
-    """Ordered pairs ``(i, j)`` of neighbouring frames, both orders of every pair.
-
-    Temporal neighbours: ``0 < |i - j| <= window``. With ``positions`` and ``radius``, also
-    spatial neighbours: frames farther apart in time whose sensor positions are closer than
-    ``radius`` (at most ``max_per_frame`` nearest per frame), i.e. revisits of a place.
-
-    Args:
-        num_frames: ``B``.
-        window: temporal half-width (>= 0).
-        positions: optional ``(B, D)`` sensor positions in the world (current estimate).
-        radius: spatial neighbour distance, same unit as ``positions``.
-
-    Returns:
-        ``(P, 2)`` int64, sorted and without duplicates.
-    """
-    i = np.arange(num_frames)
-    parts = []
-    for d in range(1, min(window, num_frames - 1) + 1):
-        parts.append(np.stack([i[:-d], i[d:]], 1))
-    if positions is not None and radius and num_frames > window + 1:
-        from scipy.spatial import cKDTree
-
-        k = min(max_per_frame + 2 * window + 1, num_frames)
-        dist, nn = cKDTree(positions).query(positions, k=k)
-        a = np.repeat(i, k)
-        b, dd = nn.ravel(), dist.ravel()
-        keep = (dd < radius) & (np.abs(a - b) > window) & (b < num_frames)
-        a, b = a[keep], b[keep]
-        # at most max_per_frame per frame, nearest first (query order is by distance)
-        rank = np.zeros_like(a)
-        if len(a):
-            first = np.r_[0, np.flatnonzero(np.diff(a)) + 1]
-            rank = np.arange(len(a)) - np.repeat(first, np.diff(np.r_[first, len(a)]))
-        keep = rank < max_per_frame
-        parts.append(np.stack([np.minimum(a, b), np.maximum(a, b)], 1)[keep])
-    if not parts:
-        return np.zeros((0, 2), dtype=np.int64)
-    und = np.unique(np.concatenate(parts).astype(np.int64), axis=0)
-    return np.concatenate([und, und[:, ::-1]]).astype(np.int64)
-
-
-def pair_queries(
-    frame: np.ndarray, pairs: np.ndarray, query: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """Every (query point, target frame) for ordered frame ``pairs``.
-
-    Args:
-        frame: ``(M,)`` int frame number of each point; points of a frame are contiguous
-            and frames appear in increasing order.
-        pairs: ``(P, 2)`` ordered pairs ``(i, j)``: points of ``i`` look into frame ``j``.
-        query: optional ``(Q0,)`` indices of the points that query (default: all),
-            sorted by frame.
-
-    Returns:
-        ``src (Q,)`` indices of query points and ``target_frame (Q,)``.
-    """
-    src0 = np.arange(len(frame)) if query is None else np.asarray(query, dtype=np.int64)
-    if len(pairs) == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    nf = int(frame.max()) + 1
-    counts = np.bincount(frame[src0], minlength=nf)
-    starts = np.r_[0, np.cumsum(counts)[:-1]]
-    n = counts[pairs[:, 0]]
-    total = int(n.sum())
-    # ragged arange: for pair p, positions starts[i_p] ... starts[i_p] + n_p - 1 in src0
-    offs = np.arange(total) - np.repeat(np.cumsum(n) - n, n)
-    pos = np.repeat(starts[pairs[:, 0]], n) + offs
-    return src0[pos], np.repeat(pairs[:, 1], n)
-
-
-def nearest_in_frame(
-    points: np.ndarray, frame: np.ndarray, src: np.ndarray, target_frame: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Nearest point of frame ``target_frame[q]`` to point ``src[q]``, for every query ``q``.
-
-    Args:
-        points: ``(M, D)`` float coordinates (detached, any unit).
-        frame: ``(M,)`` int frame number of each point.
-        src: ``(Q,)`` indices into ``points`` of the query points.
-        target_frame: ``(Q,)`` frame each query searches.
-
-    Returns:
-        ``idx (Q,)`` indices into ``points`` of the nearest neighbours and ``dist (Q,)`` their
-        Euclidean distances.
-    """
-    points = np.asarray(points, dtype=np.float64)
-    extent = float(np.linalg.norm(np.ptp(points, axis=0))) if len(points) else 0.0
-    c = 2.0 * extent + 1.0  # any in-frame distance is <= extent < c; a cross-frame one >= c
-    tree = cKDTree(_lift(points, frame, c), balanced_tree=False, compact_nodes=False)
-    dist, idx = tree.query(_lift(points[src], target_frame, c), k=1, workers=-1)
-    return idx.astype(np.int64), dist
 
 
 # --------------------------------------------------------------------------------------------
@@ -209,12 +101,84 @@ def chamfer_matches(
         kept = torch.as_tensor(trimmed_mask(d2.detach().cpu().numpy(), groups, keep), device=points.device)
         w = kept.to(points.dtype) if wt is None else kept.to(points.dtype) * wt
         return (r2 * w).sum() / w.sum().clamp_min(1e-12)
-    if normals is None:
-        return mean(robust_squared(d2, robust=robust, threshold=threshold))
+    return mean(match_cost(d2, r2, plane=normals is not None, robust=robust, threshold=threshold))
+
+
+def match_cost(d2: torch.Tensor, r2: torch.Tensor, *, plane: bool, robust: Robust, threshold: float) -> torch.Tensor:
+    """Cost of each match from its squared distance ``d2`` and squared residual ``r2`` (any shape).
+
+    Point to point (``plane=False``): `robust_squared` of ``d2``. Point to plane: `robust_squared`
+    of ``r2``, except ``truncated``: ``min(r2, threshold^2)`` when the points are closer than
+    ``threshold``, else ``threshold^2``. (``trimmed`` is a selection, see `pair_chamfer`.)
+    """
+    if not plane:
+        return robust_squared(d2, robust=robust, threshold=threshold)
     if robust == "truncated":
         t2 = threshold * threshold
-        return mean(torch.where(d2 < t2, torch.clamp(r2, max=t2), torch.full_like(r2, t2)))
-    return mean(robust_squared(r2, robust=robust, threshold=threshold))
+        return torch.where(d2 < t2, torch.clamp(r2, max=t2), torch.full_like(r2, t2))
+    return robust_squared(r2, robust=robust, threshold=threshold)
+
+
+def pair_chamfer(
+    moved: torch.Tensor,
+    matched: torch.Tensor,
+    normals: torch.Tensor | None,
+    valid: torch.Tensor,
+    found: torch.Tensor,
+    spatial: torch.Tensor,
+    weight: torch.Tensor,
+    *,
+    robust: Robust,
+    loop_robust: Robust,
+    threshold: float,
+    keep: float = 0.5,
+) -> torch.Tensor:
+    """Chamfer term of ``P`` ordered frame pairs, ``Q`` query slots each (differentiable in ``moved``).
+
+    Args:
+        moved: ``(P, Q, D)`` query points of each pair's query frame, in its target frame's axes.
+        matched: ``(P, Q, D)`` their nearest target points; normals: ``(P, Q, D)`` the target
+            points' unit normals (point to plane), or None (point to point).
+        valid: ``(P, Q)`` bool, real query slots; found: ``(P, Q)`` bool, False where the search
+            stopped at ``threshold`` (a truncated kernel: the match costs ``threshold^2``).
+        spatial: ``(P,)`` bool, loop pairs (kernel ``loop_robust``; the others ``robust``).
+        weight: ``(P,)`` weight of each pair's matches.
+        robust, loop_robust, threshold: see `match_cost`. ``robust="trimmed"``: only the ``keep``
+            fraction (at least one) of each pair's matches with the smallest distances count, as a
+            weighted mean of their ``r2``.
+
+    Returns:
+        Scalar: ``sum_(p,q) w_p rho(p, q) / #valid`` (a weighted mean of the match costs), the
+        trimmed temporal part being its own weighted mean scaled by its share of the matches.
+    """
+    diff = moved - matched
+    d2 = diff.square().sum(-1)
+    r2 = d2 if normals is None else (diff * normals).sum(-1).square()
+    plane = normals is not None
+    t2 = threshold * threshold
+    n = valid.sum().clamp_min(1)
+    w = weight[:, None] * valid
+    near = ~spatial[:, None]
+
+    def part(kernel: Robust, rows: torch.Tensor) -> torch.Tensor:
+        if kernel == "trimmed":  # a weighted mean of the kept r2, scaled by the rows' share
+            kept = w * rows * trimmed_rows(d2.detach(), valid, keep)
+            return (r2 * kept).sum() / kept.sum().clamp_min(1e-12) * ((valid & rows).sum() / n)
+        c = match_cost(d2, r2, plane=plane, robust=kernel, threshold=threshold)
+        c = torch.where(found, c, torch.full_like(c, t2))
+        return (c * w * rows).sum() / n
+
+    if robust == loop_robust and robust != "trimmed":
+        return part(robust, torch.ones_like(near))
+    return part(robust, near) + part(loop_robust, ~near)
+
+
+def trimmed_rows(d2: torch.Tensor, valid: torch.Tensor, keep: float) -> torch.Tensor:
+    """``(P, Q)`` bool: the ``keep`` fraction (at least one) of each row's valid ``d2``, smallest first."""
+    order = torch.sort(d2.masked_fill(~valid, float("inf")), dim=-1, stable=True).indices
+    rank = torch.empty_like(order).scatter_(-1, order, torch.arange(d2.shape[-1], device=d2.device).expand_as(order))
+    limit = torch.ceil(keep * valid.sum(-1, keepdim=True)).clamp_min(1)
+    return (rank < limit) & valid
 
 
 def trimmed_mask(d2: np.ndarray, groups: np.ndarray | None, keep: float) -> np.ndarray:
@@ -324,7 +288,7 @@ def free_space_samples(
         Differentiable in ``origins`` and ``hits``.
     """
     r = len(hits)
-    u = torch.rand((r, per_ray, 1), generator=generator, dtype=hits.dtype, device="cpu").to(hits.device)
+    u = torch.rand((r, per_ray, 1), generator=generator, dtype=hits.dtype, device=generator.device).to(hits.device)
     out = origins[:, None, :] + u * (hits - origins)[:, None, :]
     return out.reshape(r * per_ray, hits.shape[-1])
 

@@ -29,6 +29,7 @@ import itertools
 from typing import Literal
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from strep_core import geometry as g
@@ -115,6 +116,16 @@ def _mlp(sizes: list[int], *, batch_norm: bool = False) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
+def _per_point(layer: nn.Module, h: torch.Tensor) -> torch.Tensor:
+    """``layer`` (Linear, BatchNorm, ReLU or Identity, as built for ``(..., C)`` rows) applied to
+    every point of channels-first ``h (B, C, N)``."""
+    if isinstance(layer, nn.Linear):
+        return F.conv1d(h, layer.weight[..., None], layer.bias)
+    if isinstance(layer, nn.BatchNorm1d):  # (B, C, N): statistics per channel over frames and points
+        return nn.BatchNorm1d.forward(layer, h)
+    return layer(h)
+
+
 class PoseDecoder(nn.Module):
     """PointNet-style regression of a pose-correction vector per frame.
 
@@ -167,13 +178,19 @@ class PoseDecoder(nn.Module):
             ``(B, 3)`` ``(x, y, theta)`` in 2D or ``(B, 6)`` ``(t, axis-angle)`` in 3D;
             translations in normalised units, angles in radians.
         """
-        h = self.first_points(points)
+        # The per-point layers run channels first, (B, C, N), as kernel-1 convolutions with the
+        # Linear layers' own weights, and max-pool over the contiguous point axis before the last
+        # ReLU (relu(max) = max(relu)): the same function as Linear + ReLU on (B, N, C) then amax,
+        # with decoder forward + backward about 2x cheaper on a CPU (docs/design/optimiser.md).
+        h = _per_point(self.first_points, points.transpose(1, 2))
         if self.first_latent is not None:
             if latent is None:
                 raise ValueError("this decoder was built for latents; pass them")
-            h = h + self.first_latent(latent)[:, None, :]
-        h = self.point_mlp(torch.relu(self.first_norm(h)))
-        feature = h.amax(dim=1)
+            h = h + self.first_latent(latent)[:, :, None]
+        h = torch.relu(_per_point(self.first_norm, h))
+        for layer in list(self.point_mlp)[:-1]:  # the last ReLU waits until after the pool
+            h = _per_point(layer, h)
+        feature = torch.relu(h.max(dim=2).values)
         return self.out(self.head(feature))
 
 

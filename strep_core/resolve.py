@@ -44,16 +44,13 @@ class ResolvedRun:
 
 
 def resolve_device(name: str) -> str:
-    """``auto``: ``cuda`` when torch sees a GPU, else ``cpu``; ``cuda`` without one is a `ConfigError`."""
+    """``cpu`` without loading torch; else `strep_core.device.resolve_device` (``auto``: ``cuda``
+    when torch sees a GPU, else ``cpu``; ``cuda`` without one is a `ConfigError`)."""
     if name == "cpu":
         return "cpu"
-    import torch
+    from strep_core.device import resolve_device as on_torch
 
-    if name == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("device 'cuda' asked for, but torch sees no CUDA device")
-    return name
+    return on_torch(name)
 
 
 def resolve_start(start: str, init: str) -> str:

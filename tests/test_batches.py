@@ -10,10 +10,11 @@ import pytest
 import torch
 
 from strep_core import geometry as g
-from strep_core.batching import AUTO_BATCH_FRAMES, batch_schedule, batch_size, total_steps, with_partners
+from strep_core.batching import AUTO_BATCH_FRAMES, batch_schedule, batch_size, total_steps
 from strep_core.config import RunConfig
 from strep_core.events import ListSink
 from strep_core.model import Latents
+from strep_core.pairs import with_partners
 from strep_core.runner import run
 from strep_core.samples import load_sample
 from strep_core.sequence import Sequence

@@ -9,6 +9,7 @@ import torch
 from strep_core import geometry as g
 from strep_core import losses
 from strep_core.model import OccupancyMLP
+from strep_core.pairs import frame_pairs, pair_queries
 
 
 @pytest.fixture(autouse=True)
@@ -58,27 +59,27 @@ def test_kdtree_chamfer_equals_brute_force() -> None:
     sizes = [40, 55, 33, 60, 47, 52]  # frames of different sizes, as in 3D
     frame = np.repeat(np.arange(len(sizes)), sizes)
     points = rng.normal(size=(len(frame), 3)) * 5.0 + frame[:, None] * 0.7
-    pairs = losses.frame_pairs(len(sizes), 2)
+    pairs = frame_pairs(len(sizes), 2)
     query = np.sort(rng.choice(len(frame), 150, replace=False))
     value = losses.neighbourhood_chamfer(torch.tensor(points), frame, pairs, query=query).item()
     assert value == pytest.approx(_brute_force(points, frame, pairs, query), abs=1e-6)
 
 
 def test_frame_pairs_temporal_and_spatial() -> None:
-    pairs = losses.frame_pairs(6, 2)
+    pairs = frame_pairs(6, 2)
     assert len(pairs) == 2 * (5 + 4)  # both orders of |i-j| = 1 and 2
     assert set(map(tuple, pairs)) == {(i, j) for i in range(6) for j in range(6) if 0 < abs(i - j) <= 2}
     # frames 0 and 9 are at the same place: a spatial pair beyond the window
     pos = np.c_[np.arange(10.0), np.zeros(10)]
     pos[9] = pos[0] + 0.1
-    spatial = {tuple(p) for p in losses.frame_pairs(10, 2, positions=pos, radius=0.5)}
+    spatial = {tuple(p) for p in frame_pairs(10, 2, positions=pos, radius=0.5)}
     assert (0, 9) in spatial and (9, 0) in spatial
     assert (0, 5) not in spatial
 
 
 def test_pair_queries_cover_each_pair_once() -> None:
     frame = np.repeat(np.arange(3), [4, 2, 3])
-    src, target = losses.pair_queries(frame, np.array([[0, 1], [2, 0]]))
+    src, target = pair_queries(frame, np.array([[0, 1], [2, 0]]))
     assert src.tolist() == [0, 1, 2, 3, 6, 7, 8]
     assert target.tolist() == [1, 1, 1, 1, 0, 0, 0]
 
@@ -89,7 +90,7 @@ def test_chamfer_gradient_reaches_poses() -> None:
     poses = g.se2_from_xytheta(xi)
     world = torch.cat([g.apply(poses[0], pts), g.apply(poses[1], pts)])
     frame = np.repeat([0, 1], len(pts))
-    loss = losses.neighbourhood_chamfer(world, frame, losses.frame_pairs(2, 1))
+    loss = losses.neighbourhood_chamfer(world, frame, frame_pairs(2, 1))
     loss.backward()
     assert xi.grad is not None and torch.isfinite(xi.grad).all()
     # the gradient of the moved frame points back towards alignment

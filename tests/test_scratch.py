@@ -11,6 +11,7 @@ from strep_core.config import RunConfig
 from strep_core.errors import ConfigError
 from strep_core.events import ListSink
 from strep_core.model import OccupancyMLP
+from strep_core.neighbours import nearest_in_frame
 from strep_core.profiles import START_OVERLAYS
 from strep_core.resolve import resolve
 from strep_core.runner import run
@@ -102,7 +103,7 @@ def _pair_cost(a: np.ndarray, b: np.ndarray, rel: np.ndarray, robust: str) -> fl
     frame = np.r_[np.zeros(len(a), np.int64), np.ones(len(b), np.int64)]
     src = np.arange(len(pts))
     target = 1 - frame
-    idx, _ = losses.nearest_in_frame(pts, frame, src, target)
+    idx, _ = nearest_in_frame(pts, frame, src, target)
     cost = losses.chamfer_matches(
         torch.as_tensor(pts), src, idx, robust=robust, threshold=0.1, groups=frame * 2 + target, keep=0.5
     )
