@@ -25,7 +25,6 @@ from dataclasses import dataclass
 from typing import Any
 
 from strep_core.config import RunConfig, merge
-from strep_core.errors import ConfigError
 from strep_core.sequence import Sequence
 
 # The learned methods' warm start under ``start="pose-graph"``: the pose graph refines
