@@ -114,7 +114,7 @@ def _under(given: Any, section: type[BaseModel], profile: dict[str, Any]) -> Any
     return out
 
 
-ProfileName = Literal["auto", "none", "laser-keyframes", "laser-dense", "depth-turning", "depth-handheld"]
+ProfileName = Literal["auto", "none", "laser-keyframes", "laser-dense", "depth-turning", "depth-handheld", "lidar"]
 
 
 class RunConfig(Section):

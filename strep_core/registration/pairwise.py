@@ -275,13 +275,21 @@ def _best_yaw_start(
 
     from strep_core._open3d import o3d
 
-    if not params.planar:  # the trimmed distance's inputs, once for every start
+    axis = np.asarray(params.yaw_axis, dtype=np.float64)
+    if not params.planar:
+        if params.yaw_refine > 0 and source.has_normals():
+            from strep_core.registration.lidar import refine_axis
+
+            axis = refine_axis(np.asarray(source.normals), axis, float(np.degrees(params.yaw_refine)))
+        if params.search_voxel is not None:  # the starts on coarser copies (docs/design/lidar.md)
+            source, target = (_coarser(c, params.search_voxel) for c in (source, target))
+        # the trimmed distance's inputs, once for every start
         src_pts, tgt_pts = np.asarray(source.points), np.asarray(target.points)
         tree = cKDTree(tgt_pts)
     best, best_score = None, (np.inf, 0.0)
     for yaw in (0.0, *offsets):
         turn = np.eye(4)
-        turn[:3, :3] = g.so3_exp(np.asarray(params.yaw_axis, dtype=np.float64) * yaw)
+        turn[:3, :3] = g.so3_exp(axis * yaw)
         stage = _icp_stage(source, target, init @ turn, coarse, params, criteria)
         if stage is None:
             continue
@@ -293,6 +301,14 @@ def _best_yaw_start(
         if score < best_score:
             best, best_score = stage, score
     return best
+
+
+def _coarser(cloud: o3d.geometry.PointCloud, voxel: float) -> o3d.geometry.PointCloud:
+    """``cloud`` downsampled to ``voxel`` (normals averaged per voxel, then unit length)."""
+    out = cloud.voxel_down_sample(voxel)
+    if out.has_normals():
+        out.normalize_normals()
+    return out if len(out.points) >= 3 else cloud
 
 
 def trimmed_distance(
