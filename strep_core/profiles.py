@@ -21,6 +21,9 @@ Profiles (values in `PROFILES`; measurements in ``docs/design/profiles.md``):
   simulated AVD-like walks): ICP searches yaw about the camera's vertical axis in 30-degree
   steps, finer stages, weak directions keep the guess, frame to frame.
 * ``depth-handheld``: a depth camera moved smoothly (7-Scenes): the defaults.
+* ``lidar``: a 3D LiDAR (lidar_balm): voxel and normals from the median range, a yaw search about
+  the vertical estimated from the scans on coarser copies, Tukey kernel, constant velocity;
+  ``kiss`` with KISS-ICP's own voxel, the largest range / 100 (docs/design/lidar.md).
 * ``none``: the defaults, no probe.
 
 The probe (`probe`) reads what the reader recorded of the sensor (``Sequence.meta["sensor"]``:
@@ -32,7 +35,10 @@ frame) and, on up to `PROBE_PAIRS` consecutive pairs spread over the sequence:
 * 3D: the heading change that best overlaps the pair, turning about the camera's vertical axis
   (every 5 degrees up to 60), and the overlap at identity.
 
-Rules: 2D is ``laser-keyframes`` when the median step exceeds `KEYFRAME_STEP` scales or the
+A 3D sequence in metres from no image grid is a ``lidar`` when its rays cover at least
+`LIDAR_AZIMUTH` degrees of azimuth and reach `LIDAR_RANGE` at the 95th percentile, or one of these
+with LiDAR per-point fields (`_lidar_evidence`, `strep_core.registration.lidar.sensor_geometry`).
+Other rules: 2D is ``laser-keyframes`` when the median step exceeds `KEYFRAME_STEP` scales or the
 largest turn exceeds `KEYFRAME_TURN` degrees, else ``laser-dense``; 3D is ``depth-turning`` when a
 vertical axis is known and the largest turn reaches `TURNING_TURN` degrees, else
 ``depth-handheld``.
@@ -274,11 +280,12 @@ def overlay(name: str, seq: Sequence | None = None, *, scratch: bool = False) ->
         for section, values in SCRATCH_OVERLAYS.get(name, {}).items():
             out[section] = merge(out.get(section, {}), values)
     if name == "lidar" and seq is not None:
-        from strep_core.registration.lidar import vertical_axis
+        from strep_core.registration.lidar import kiss_voxel, vertical_axis
 
         known = sensor_of(seq).get("vertical_axis")
         axis = vertical_axis(seq) if known is None else known
         out["classical"]["icp"]["yaw_axis"] = tuple(float(c) for c in axis)
+        out["classical"]["kiss"] = {"voxel": kiss_voxel(seq)}  # KISS-ICP's own rule
     if name == "depth-turning" and seq is not None:
         axis = sensor_of(seq).get("vertical_axis")
         if axis is not None:

@@ -129,13 +129,26 @@ def test_a_folder_of_lidar_scans_records_fields_and_per_scan_stamps(tmp_path: Pa
     assert scan_stamp({"timestamp": np.array([T0 * 1e9])}) == pytest.approx(T0)  # nanoseconds
 
 
-def test_velodyne_bin_scans_are_read_with_their_reflectance(tmp_path: Path) -> None:
+def test_velodyne_bin_scans_are_read_with_their_reflectance_and_kitti_poses_in_the_lidar_frame(tmp_path: Path) -> None:
     for k in range(2):
         table = np.concatenate([XYZ + k, INTENSITY[:, None] / 255], 1).astype("<f4")
         (tmp_path / f"{k:06d}.bin").write_bytes(table.tobytes())
     seq = load_sequence(tmp_path)
     assert seq.meta["format"] == "velodyne-bin" and seq.meta["point_fields"] == ["reflectance"]
     np.testing.assert_allclose(seq.frames[1], (XYZ + 1).astype(np.float32), rtol=1e-6)
+    # KITTI: the poses are the left camera's, calib.txt's Tr maps LiDAR points into that camera
+    tr = np.eye(4)
+    tr[:3, :3] = g.so3_exp(np.array([1.2, -1.2, 1.2]))
+    tr[:3, 3] = [-0.004, -0.076, -0.27]
+    cam = np.stack([np.eye(4), np.eye(4)])
+    cam[1, :3, :3], cam[1, :3, 3] = g.so3_exp(np.array([0.0, 0.3, 0.0])), [0.1, 0.0, 1.5]
+    (tmp_path / "poses.txt").write_text("\n".join(" ".join(f"{v:.17g}" for v in p[:3].ravel()) for p in cam) + "\n")
+    (tmp_path.parent / "calib.txt").write_text(
+        "P0: " + " 0" * 12 + "\nTr: " + " ".join(f"{v:.17g}" for v in tr[:3].ravel()) + "\n"
+    )
+    seq = load_sequence(tmp_path)
+    np.testing.assert_allclose(seq.poses, np.linalg.inv(tr) @ cam @ tr, atol=1e-12)
+    assert "calib.txt" in seq.meta["poses_frame"]
     (tmp_path / "000001.bin").write_bytes(b"\0" * 20)
     with pytest.raises(FormatError, match="Velodyne"):
         load_sequence(tmp_path)

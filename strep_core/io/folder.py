@@ -17,7 +17,9 @@
   counts them.
 * Colours, when every selected frame has them, fill ``Sequence.colors`` (uint8).
 * Poses (local -> world, in the frames' unit): a TUM or KITTI file given as ``poses``, or
-  found in the folder (`strep_core.io.poses.find_pose_file`). They match the frames by
+  found in the folder (`strep_core.io.poses.find_pose_file`). KITTI poses of ``.bin`` scans
+  with a KITTI ``calib.txt`` beside them or one folder up are moved to the LiDAR's frame
+  (``Tr^-1 P Tr``). They match the frames by
   order when the counts agree; otherwise TUM stamps match the number in each frame's name
   (as written by `strep_core.io.writers.write_tum`, which stamps each frame's index).
 """
@@ -231,6 +233,11 @@ def read_folder(
         all_poses, matched = _match_poses(poses_path, poses_format, files, path)
         gt = all_poses[sel]
         pose_info = {"poses_file": str(poses_path), "poses_matched_by": matched}
+        calib = _kitti_calibration(path) if all(f.suffix.lower() == ".bin" for f in files) else None
+        if calib is not None and matched == "order" and read_poses(poses_path, format=poses_format).stamps is None:
+            # KITTI's poses are its left camera's: the LiDAR's are Tr^-1 P Tr (p_cam = Tr p_velo)
+            gt = np.linalg.inv(calib[1]) @ gt @ calib[1]
+            pose_info["poses_frame"] = f"LiDAR, through Tr of {calib[0]}"
 
     budget = budget or ReadBudget()
     pts, cols, attrs = [], [], []
@@ -262,6 +269,26 @@ def read_folder(
         )
     except SequenceError as exc:
         raise SequenceError(f"{path}: {exc}") from exc
+
+
+def _kitti_calibration(folder: Path) -> tuple[str, np.ndarray] | None:
+    """``(path, Tr)`` of a KITTI ``calib.txt`` beside the scans or one folder up (``Tr:`` 12
+    numbers, LiDAR -> left camera); ``None`` when there is none."""
+    for place in (folder, folder.parent):
+        calib = place / "calib.txt"
+        if not calib.is_file():
+            continue
+        for line in calib.read_text(encoding="utf-8", errors="replace").splitlines():
+            key, _, rest = line.partition(":")
+            if key.strip() == "Tr":
+                try:
+                    values = np.array(rest.split(), dtype=np.float64)
+                except ValueError as exc:
+                    raise FormatError(f"{calib}: Tr is not 12 numbers ({exc})") from exc
+                if values.shape != (12,) or not np.isfinite(values).all():
+                    raise FormatError(f"{calib}: Tr has {values.size} numbers, not 12")
+                return str(calib), np.vstack([values.reshape(3, 4), [0.0, 0.0, 0.0, 1.0]])
+    return None
 
 
 def _point_fields(attrs: list[dict[str, np.ndarray]], suffixes: list[str]) -> dict[str, object]:

@@ -137,3 +137,17 @@ def vertical_axis(seq: Sequence, *, voxel: float | None = None) -> np.ndarray:
         normals.append(pca_normals(f[np.sort(first)], 4 * cell))
     axis = refine_axis(np.concatenate(normals), guess)
     return axis if axis @ guess >= 0 else -axis
+
+
+def kiss_voxel(seq: Sequence) -> float:
+    """KISS-ICP's own voxel for a LiDAR, its maximum range / 100 (1 m for its default 100 m), with
+    the data's maximum range taken as the 99.9th percentile of the point ranges (a few stray
+    returns lie at 187 m in lidar_balm, 99.9 % within 27 m): 0.27 m here, where the project's rule
+    from the point spacing gives 0.05 m (KISS 0.255 m ATE in 319 s; 0.0095 m in 40 s at 0.27 m,
+    0.021 m at KISS's plain 1 m)."""
+    assert seq.origins is not None
+    step = max(1, len(seq) // 32)
+    ranges = np.concatenate(
+        [np.linalg.norm(f - o, axis=1) for f, o in zip(seq.frames[::step], seq.origins[::step], strict=True)]
+    )
+    return float(np.percentile(ranges, 99.9)) / 100
