@@ -18,7 +18,9 @@ A pairwise result ``T`` maps *source* coordinates into *target* coordinates:
   as extra starts of the coarsest stage; the best start goes on: in 3D the lowest trimmed
   distance (`trimmed_distance`: the closest half of the matches both ways), in 2D the most
   source points matched within the finest distance (ties: the lower RMSE). Point-to-plane ICP
-  converges only from within about 10 degrees; laser keyframes turn by up to 20 to 30;
+  converges only from within about 10 degrees; laser keyframes turn by up to 20 to 30; in 3D
+  the starts may run on coarser copies of the clouds (``search_voxel``) and turn about the axis
+  refined by the source's horizontal normals (``yaw_refine``): a LiDAR (docs/design/lidar.md);
 * ``degeneracy``: after the last stage, translation along directions the matched normals barely
   constrain returns to the guess's (`keep_guess_where_weak`); 0: off;
 * ``correlative`` (2D): the stages also run from a correlative scan match around the guess
