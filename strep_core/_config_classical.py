@@ -74,6 +74,13 @@ class IcpConfig(Section):
         description="3D ICP: before the yaw search, move yaw_axis to the mean of the source's normals within this "
         "many degrees of it (its floor and ceiling: a hand-held LiDAR tilts); 0: off",
     )
+    yaw_verify: float = Field(
+        default=0.0,
+        ge=0,
+        le=10,
+        description="3D ICP: when the yaw search's best start leaves a trimmed distance above this many voxels "
+        "(of the clouds the search ran on), try every other heading too; 0: off",
+    )
     degeneracy: float = Field(
         default=0.0,
         ge=0,

@@ -92,6 +92,8 @@ PROFILES: dict[str, dict[str, dict[str, Any]]] = {
                 "yaw_axis": (0.0, 0.0, 1.0),  # replaced by the axis estimated from the scans
                 "yaw_refine": 25.0,
                 "search_voxel": 2.0,
+                # a right match leaves 0.28 search voxels, wrong ones 0.40 and more: below, the full circle
+                "yaw_verify": 0.35,
                 "kernel": 1.0,
                 "local_map_frames": 1,
                 "motion_prior": "velocity",

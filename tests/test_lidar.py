@@ -5,7 +5,9 @@ Bounds measured once on this machine (2 cores, 1 Open3D thread) and asserted wit
 
 * lidar_balm scans 029 -> 030 (a 29-degree turn and a 0.27 m step): with the ``lidar`` profile
   0.006 m and 0.03 degrees from the reference, from identity and from a guess turned 30 degrees
-  the other way; from that guess without the yaw search 2.2 m off (fitness 0.69 against 0.92).
+  the other way; from that guess without the yaw search 2.2 m off (fitness 0.69 against 0.92);
+  from a guess 150 degrees off, the verification's full circle lands there too (without it
+  180 degrees off).
 * lidar_balm 7:13 (turns of 13 to 29 degrees), ``icp`` with every default: ATE 0.003 m
   (identity 0.24 m).
 """
@@ -222,6 +224,14 @@ def test_a_29_degree_turn_between_scans_is_registered(balm) -> None:
     # without the yaw search, ICP from that guess slides along the building
     plain, res = align_frames(pair.frames[1], pair.frames[0], wrong_way, dataclasses.replace(params, yaw_search=()))
     assert np.linalg.norm(g.relative(truth, plain)[:3, 3]) > 0.5 and res.fitness < 0.8
+    # a guess 150 degrees off: no start within +-45 degrees matches as a right match does, and the
+    # verification tries every other heading (without it: 180 degrees off)
+    behind = np.eye(4)
+    behind[:3, :3] = g.so3_exp(np.asarray(params.yaw_axis) * np.radians(150))
+    found, _ = align_frames(pair.frames[1], pair.frames[0], behind, params)
+    assert np.linalg.norm(g.relative(truth, found)[:3, 3]) < 0.03
+    lost, _ = align_frames(pair.frames[1], pair.frames[0], behind, dataclasses.replace(params, yaw_verify=0.0))
+    assert np.degrees(g.rotation_angle(g.relative(truth, lost))) > 90
 
 
 def test_icp_with_every_default_follows_the_turns_of_lidar_balm(balm) -> None:

@@ -288,20 +288,38 @@ def _best_yaw_start(
         # the trimmed distance's inputs, once for every start
         src_pts, tgt_pts = np.asarray(source.points), np.asarray(target.points)
         tree = cKDTree(tgt_pts)
-    best, best_score = None, (np.inf, 0.0)
-    for yaw in (0.0, *offsets):
-        turn = np.eye(4)
-        turn[:3, :3] = g.so3_exp(axis * yaw)
-        stage = _icp_stage(source, target, init @ turn, coarse, params, criteria)
-        if stage is None:
-            continue
-        if params.planar:
-            ev = o3d.pipelines.registration.evaluate_registration(source, target, fine, stage[0])
-            score = (-round(float(ev.fitness), 3), float(ev.inlier_rmse))
-        else:
-            score = (trimmed_distance(src_pts, tgt_pts, stage[0], target_tree=tree), 0.0)
-        if score < best_score:
-            best, best_score = stage, score
+
+    def starts(yaws: tuple[float, ...]) -> tuple[tuple[np.ndarray, float, float] | None, tuple[float, float]]:
+        best, best_score = None, (np.inf, 0.0)
+        for yaw in yaws:
+            turn = np.eye(4)
+            turn[:3, :3] = g.so3_exp(axis * yaw)
+            stage = _icp_stage(source, target, init @ turn, coarse, params, criteria)
+            if stage is None:
+                continue
+            if params.planar:
+                ev = o3d.pipelines.registration.evaluate_registration(source, target, fine, stage[0])
+                score = (-round(float(ev.fitness), 3), float(ev.inlier_rmse))
+            else:
+                score = (trimmed_distance(src_pts, tgt_pts, stage[0], target_tree=tree), 0.0)
+            if score < best_score:
+                best, best_score = stage, score
+        return best, best_score
+
+    tried = (0.0, *offsets)
+    best, best_score = starts(tried)
+    cell = params.search_voxel or params.voxel or 0.0
+    if not params.planar and params.yaw_verify > 0 and offsets and best_score[0] > params.yaw_verify * cell:
+        # no start matched as a right match does: every other heading, at the search's step
+        step = abs(offsets[0])
+        rest = tuple(
+            float(y)
+            for y in np.arange(-np.pi, np.pi - 1e-9, step)
+            if min(abs(np.angle(np.exp(1j * (y - t)))) for t in tried) > 1e-6
+        )
+        other, other_score = starts(rest)
+        if other is not None and other_score < best_score:
+            best = other
     return best
 
 
