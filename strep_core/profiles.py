@@ -23,7 +23,7 @@ Profiles (values in `PROFILES`; measurements in ``docs/design/profiles.md``):
 * ``depth-handheld``: a depth camera moved smoothly (7-Scenes): the defaults.
 * ``lidar``: a 3D LiDAR (lidar_balm): voxel and normals from the median range, a yaw search about
   the vertical estimated from the scans on coarser copies, Tukey kernel, constant velocity;
-  ``kiss`` with KISS-ICP's own voxel, the largest range / 100 (docs/design/lidar.md).
+  ``kiss`` with KISS-ICP's own voxel rule, the (99.9th-percentile) range / 100 (docs/design/lidar.md).
 * ``none``: the defaults, no probe.
 
 The probe (`probe`) reads what the reader recorded of the sensor (``Sequence.meta["sensor"]``:
@@ -81,7 +81,7 @@ PROFILES: dict[str, dict[str, dict[str, Any]]] = {
     },
     "depth-handheld": {"classical": {}},
     # a LiDAR: voxel 0.04 of the median range, normals within 5 voxels, a yaw search of +-45 degrees about the
-    # vertical axis estimated from the scans (`lidar_overlay`) on 2x coarser copies, Tukey kernel, constant
+    # vertical axis estimated from the scans (`overlay`) on 2x coarser copies, Tukey kernel, constant
     # velocity: lidar_balm icp 4.98 -> 0.005 m (docs/design/lidar.md)
     "lidar": {
         "classical": {
