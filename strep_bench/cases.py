@@ -15,7 +15,10 @@ Suites (``--suites``):
 * ``bunny``: the 10 Stanford bunny range scans (views up to 180 degrees apart), voxel 2 mm
   (6,000 to 7,000 points a scan), once from identity and once from ``init="fpfh"``
   (`strep_core.globalreg`), every method alike; its rows are labelled ``bunny`` and
-  ``bunny+fpfh`` so that each initial guess gets its own mean.
+  ``bunny+fpfh`` so that each initial guess gets its own mean;
+* ``lidar``: 20 consecutive scans of a hand-held solid-state Livox LiDAR (BALM, about 82,000
+  points a scan, turns up to 29 degrees), from identity (quick: the first 10); the probe picks
+  the ``lidar`` profile (docs/design/lidar.md).
 
 On both real 3D suites learned methods run at most 100 iterations (`REAL3D_ITERATIONS`).
 
@@ -173,6 +176,20 @@ def _bunny(data: Path, quick: bool) -> Iterator[BenchCase]:
         )
 
 
+def _lidar(data: Path, quick: bool) -> Iterator[BenchCase]:
+    from strep_core.io.folder import read_folder
+
+    path = data / "lidar_balm"
+    frames = "0:10" if quick else None
+
+    def load() -> Sequence:
+        return read_folder(path, frames=frames)
+
+    yield BenchCase(
+        "lidar", "lidar_balm" if frames is None else f"lidar_balm[{frames}]", load, source=str(path), frames=frames
+    )
+
+
 SUITES: dict[str, Callable[[Path, bool], Iterator[BenchCase]]] = {
     "v1_pose0": _v1_pose0,
     "sim2d": _sim2d,
@@ -180,6 +197,7 @@ SUITES: dict[str, Callable[[Path, bool], Iterator[BenchCase]]] = {
     "sim3d": _sim3d,
     "sevenscenes": _sevenscenes,
     "bunny": _bunny,
+    "lidar": _lidar,
 }
 POSE_ERROR_SUITES = ("sevenscenes", "bunny", "bunny+fpfh")  # row labels of the real 3D suites
 

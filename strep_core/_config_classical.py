@@ -59,6 +59,27 @@ class IcpConfig(Section):
         "(e.g. [0, -1, 0] for a level camera with OpenCV axes, [0, 0, 1] for a level LiDAR); None: no yaw "
         "search in 3D (2D always turns about z)",
     )
+    search_voxel: float = Field(
+        default=1.0,
+        ge=1,
+        le=20,
+        description="3D ICP: the yaw search's starts run on the clouds downsampled to this many voxels (cheaper); "
+        "1: on the clouds as prepared",
+    )
+    yaw_refine: float = Field(
+        default=0.0,
+        ge=0,
+        le=60,
+        description="3D ICP: before the yaw search, move yaw_axis to the mean of the source's normals within this "
+        "many degrees of it (its floor and ceiling: a hand-held LiDAR tilts); 0: off",
+    )
+    yaw_verify: float = Field(
+        default=0.0,
+        ge=0,
+        le=10,
+        description="3D ICP: when the yaw search's best start leaves a trimmed distance above this many voxels "
+        "(of the clouds the search ran on), try every other heading too; 0: off",
+    )
     degeneracy: float = Field(
         default=0.0,
         ge=0,

@@ -26,6 +26,9 @@ Profiles (values in `PROFILES`; measurements in ``docs/design/profiles.md``):
   simulated AVD-like walks): ICP searches yaw about the camera's vertical axis in 30-degree
   steps, finer stages, weak directions keep the guess, frame to frame.
 * ``depth-handheld``: a depth camera moved smoothly (7-Scenes): the defaults.
+* ``lidar``: a 3D LiDAR (lidar_balm): voxel and normals from the median range, a yaw search about
+  the vertical estimated from the scans on coarser copies, Tukey kernel, constant velocity;
+  ``kiss`` with KISS-ICP's own voxel rule, the (99.9th-percentile) range / 100 (docs/design/lidar.md).
 * ``none``: the defaults, no probe.
 
 The probe (`probe`) reads what the reader recorded of the sensor (``Sequence.meta["sensor"]``:
@@ -37,7 +40,10 @@ frame) and, on up to `PROBE_PAIRS` consecutive pairs spread over the sequence:
 * 3D: the heading change that best overlaps the pair, turning about the camera's vertical axis
   (every 5 degrees up to 60), and the overlap at identity.
 
-Rules: 2D is ``laser-keyframes`` when the median step exceeds `KEYFRAME_STEP` scales or the
+A 3D sequence in metres from no image grid is a ``lidar`` when its rays cover at least
+`LIDAR_AZIMUTH` degrees of azimuth and reach `LIDAR_RANGE` at the 95th percentile, or one of these
+with LiDAR per-point fields (`_lidar_evidence`, `strep_core.registration.lidar.sensor_geometry`).
+Other rules: 2D is ``laser-keyframes`` when the median step exceeds `KEYFRAME_STEP` scales or the
 largest turn exceeds `KEYFRAME_TURN` degrees, else ``laser-dense``; 3D is ``depth-turning`` when a
 vertical axis is known and the largest turn reaches `TURNING_TURN` degrees, else
 ``depth-handheld``.
@@ -79,6 +85,29 @@ PROFILES: dict[str, dict[str, dict[str, Any]]] = {
         }
     },
     "depth-handheld": {"classical": {}},
+    # a LiDAR: voxel 0.04 of the median range, normals within 5 voxels, a yaw search of +-45 degrees about the
+    # vertical axis estimated from the scans (`overlay`) on 2x coarser copies, Tukey kernel, constant
+    # velocity: lidar_balm icp 4.98 -> 0.005 m (docs/design/lidar.md)
+    "lidar": {
+        "classical": {
+            "icp": {
+                "voxel_fraction": 0.04,
+                "yaw_search": 45.0,
+                "yaw_step": 15.0,
+                "yaw_axis": (0.0, 0.0, 1.0),  # replaced by the axis estimated from the scans
+                "yaw_refine": 25.0,
+                "search_voxel": 2.0,
+                # a right match leaves 0.28 search voxels, wrong ones 0.40 and more: below, the full circle
+                "yaw_verify": 0.35,
+                "kernel": 1.0,
+                "local_map_frames": 1,
+                "motion_prior": "velocity",
+            },
+            "normals": {"radius_factor": 5.0},
+            # loops from an odometry good to centimetres: the finest stage, 3 a frame (multiway 2.3 -> 1.7 s a scan)
+            "posegraph": {"loop_max_candidates": 3, "loop_scales": [0.5]},
+        }
+    },
     "none": {},
 }
 PROFILE_NAMES = tuple(PROFILES)
@@ -197,6 +226,33 @@ def _measure_3d(seq: Sequence, s: float, axis: np.ndarray | None) -> dict[str, A
     return {"pairs": len(overlaps), "turn_deg": turns, "overlap": overlaps}
 
 
+LIDAR_AZIMUTH = 90.0  # degrees of azimuth a LiDAR's scans cover at least (a depth camera: about 60)
+LIDAR_RANGE = 8.0  # metres: a LiDAR's 95th-percentile range reaches this (7-Scenes: 3 m)
+LIDAR_FIELDS = {"intensity", "reflectivity", "ring", "time", "timestamp", "t", "line", "tag"}
+
+
+def _lidar_evidence(seq: Sequence, sensor: dict[str, Any]) -> tuple[str, dict[str, Any]] | None:
+    """``(reason, measures)`` when a 3D sequence in metres, from no image grid, looks like a LiDAR:
+    a wide field of view and ranges of tens of metres, or one of these and a LiDAR's per-point
+    fields (`LIDAR_FIELDS`, or a Velodyne ``.bin``); else ``None``."""
+    from strep_core.registration.lidar import sensor_geometry
+
+    if seq.dim != 3 or seq.unit != "m" or sensor.get("kind") in ("depth", "laser"):
+        return None
+    geo = sensor_geometry(seq)
+    fields = sorted(LIDAR_FIELDS & {str(f).lower() for f in seq.meta.get("point_fields", []) or []})
+    if seq.meta.get("format") == "velodyne-bin":
+        fields.append("velodyne .bin")
+    wide, far = geo["azimuth_deg"] >= LIDAR_AZIMUTH, geo["range_p95"] >= LIDAR_RANGE
+    said = f"azimuth {geo['azimuth_deg']:.0f} deg, 95th-percentile range {geo['range_p95']:.1f} m"
+    if not ((wide and far) or (fields and (wide or far))):
+        return None
+    extra = f"; fields {', '.join(fields)}" if fields else ""
+    return f"LiDAR: {said} (>= {LIDAR_AZIMUTH:.0f} deg, >= {LIDAR_RANGE:.0f} m){extra}", {
+        "lidar": {**geo, "fields": fields}
+    }
+
+
 def probe(seq: Sequence) -> ProbeResult:
     """Measure a few consecutive pairs of ``seq`` and pick a profile (rules in the module doc)."""
     from strep_core.registration import point_spacing
@@ -215,6 +271,10 @@ def probe(seq: Sequence) -> ProbeResult:
             return ProbeResult("laser-keyframes", f"planar laser, {said} ({limits})", measures)
         limits = f"within {KEYFRAME_STEP} scale and {KEYFRAME_TURN:.0f} deg"
         return ProbeResult("laser-dense", f"planar laser, {said} ({limits})", measures)
+    lidar = _lidar_evidence(seq, sensor)
+    if lidar is not None:
+        measures.update(lidar[1])
+        return ProbeResult("lidar", lidar[0], measures)
     axis = sensor.get("vertical_axis")
     unit_axis = None
     if axis is not None:
@@ -247,6 +307,13 @@ def overlay(name: str, seq: Sequence | None = None, *, start: str = "pose-graph"
     for part in parts:
         for section, values in copy.deepcopy(part).items():
             out[section] = merge(out.get(section, {}), values)
+    if name == "lidar" and seq is not None:
+        from strep_core.registration.lidar import kiss_voxel, vertical_axis
+
+        known = sensor_of(seq).get("vertical_axis")
+        axis = vertical_axis(seq) if known is None else known
+        out["classical"]["icp"]["yaw_axis"] = tuple(float(c) for c in axis)
+        out["classical"]["kiss"] = {"voxel": kiss_voxel(seq)}  # KISS-ICP's own rule
     if name == "depth-turning" and seq is not None:
         axis = sensor_of(seq).get("vertical_axis")
         if axis is not None:

@@ -5,7 +5,7 @@
 * ``*.log``, ``*.log.gz`` -> `read_carmen`
 * ``*.conf``, or a folder holding one -> `read_conf`
 * a folder of ``*.depth.png`` or ``depth/*.png`` -> `read_depth_folder`
-* a folder of ``*.ply`` / ``*.pcd`` -> `read_folder`
+* a folder of ``*.ply`` / ``*.pcd`` / Velodyne ``*.bin`` -> `read_folder`
 * ``*.zip`` of any of the above -> extracted safely (`extract_zip`), then dispatched
 
 Each call of `load_sequence` reads within one `ReadBudget` (`strep_core.io.limits`): the bytes
@@ -84,7 +84,7 @@ def _is_depth_folder(folder: Path) -> bool:
 
 
 def _is_cloud_folder(folder: Path) -> bool:
-    return any(p.suffix.lower() in (".ply", ".pcd") for p in folder.iterdir())
+    return any(p.suffix.lower() in (".ply", ".pcd", ".bin") for p in folder.iterdir())
 
 
 class FormatInfo(NamedTuple):
@@ -143,8 +143,8 @@ FORMATS: tuple[FormatInfo, ...] = (
     ),
     FormatInfo(
         "folder",
-        (".ply", ".pcd"),
-        "folder of PLY/PCD frames, optional TUM or KITTI pose file",
+        (".ply", ".pcd", ".bin"),
+        "folder of PLY/PCD frames (every per-point field kept) or Velodyne .bin scans, optional TUM or KITTI pose file",
         read_folder,
         folder=_is_cloud_folder,
     ),

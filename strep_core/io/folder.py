@@ -1,7 +1,15 @@
 """A folder of point-cloud frames (``.ply`` / ``.pcd``), with an optional pose file.
 
-* Frames are the folder's ``*.ply`` and ``*.pcd`` files, sorted naturally by name
-  (``frame2`` before ``frame10``); each is read with Open3D.
+* Frames are the folder's ``*.ply``, ``*.pcd`` and Velodyne ``*.bin`` files (KITTI's
+  ``velodyne/`` folders: float32 x y z reflectance), sorted naturally by name (``frame2``
+  before ``frame10``). PCD (ascii, binary) and PLY are parsed here with every per-point field
+  (`strep_core.io.pcd`, `strep_core.io.ply`); other layouts (``binary_compressed`` PCD, PLY
+  meshes) are read with Open3D (points, colours, normals).
+* Per-point fields beyond x y z that every frame has (a LiDAR's intensity, ring, time;
+  normals, curvature) are kept in ``meta["point_fields"]`` (their names) and
+  ``meta["point_attributes"]`` (one dict of arrays per frame, aligned with the frame's points
+  and with ``meta["files"]``). A per-point time field of absolute times (after 1973) gives each
+  scan a timestamp, its earliest point's, in seconds: ``meta["stamps"]``.
 * Frames are always 3D, even when every z is 0: a folder of PLY/PCD is a 3D format, and a
   reader that changed dimension with the content would be unpredictable. 2D data belongs
   in ``.npz`` (or the DeepMapping and CARMEN formats).
@@ -9,7 +17,9 @@
   counts them.
 * Colours, when every selected frame has them, fill ``Sequence.colors`` (uint8).
 * Poses (local -> world, in the frames' unit): a TUM or KITTI file given as ``poses``, or
-  found in the folder (`strep_core.io.poses.find_pose_file`). They match the frames by
+  found in the folder (`strep_core.io.poses.find_pose_file`). KITTI poses of ``.bin`` scans
+  with a KITTI ``calib.txt`` beside them or one folder up are moved to the LiDAR's frame
+  (``Tr^-1 P Tr``). They match the frames by
   order when the counts agree; otherwise TUM stamps match the number in each frame's name
   (as written by `strep_core.io.writers.write_tum`, which stamps each frame's index).
 """
@@ -29,7 +39,9 @@ from strep_core.sequence import FrameSelection, Sequence, Unit
 
 __all__ = ["FRAME_SUFFIXES", "Cloud", "list_frames", "natural_key", "read_conf", "read_folder", "read_point_cloud"]
 
-FRAME_SUFFIXES = (".ply", ".pcd")
+FRAME_SUFFIXES = (".ply", ".pcd", ".bin")
+TIME_FIELDS = ("timestamp", "time", "t")  # a per-point time, first found wins
+_EPOCH_1973 = 1e8  # seconds: larger per-point times are absolute, smaller ones offsets within a scan
 _DIGITS = re.compile(r"(\d+)")
 
 
@@ -48,51 +60,108 @@ def list_frames(folder: Path) -> list[Path]:
 
 class Cloud(NamedTuple):
     """One frame read from a file: ``points`` ``(N, 3)`` float64, ``colors`` ``(N, 3)``
-    uint8 or ``None``, and the count of non-finite points ``dropped``."""
+    uint8 or ``None``, the count of non-finite points ``dropped``, and the other per-point
+    ``fields`` (``(N,)`` or ``(N, c)`` arrays in the file's types, the rows of ``points``)."""
 
     points: np.ndarray
     colors: np.ndarray | None
     dropped: int
+    fields: dict[str, np.ndarray] = {}  # noqa: RUF012 (a NamedTuple default, never mutated)
+
+
+def _parsed(path: Path, data: bytes) -> tuple[np.ndarray, np.ndarray | None, dict[str, np.ndarray]] | None:
+    """Points, colours and other fields of a PCD, PLY or Velodyne ``.bin`` file parsed here;
+    ``None`` for a layout left to Open3D."""
+    from strep_core.io.pcd import PcdLayoutError, parse_pcd_fields
+    from strep_core.io.ply import PlyLayoutError, parse_ply_fields
+
+    suffix = path.suffix.lower()
+    if suffix == ".bin":
+        if len(data) % 16:
+            raise FormatError(f"{path}: a Velodyne .bin holds float32 x y z reflectance: {len(data)} bytes")
+        table = np.frombuffer(data, dtype="<f4").reshape(-1, 4)
+        return table[:, :3].astype(np.float64), None, {"reflectance": table[:, 3].copy()}
+    try:
+        fields = parse_pcd_fields(data, name=str(path)) if suffix == ".pcd" else parse_ply_fields(data, name=str(path))
+    except (PcdLayoutError, PlyLayoutError):
+        return None
+    points = np.stack([fields.pop(a) for a in "xyz"], 1).astype(np.float64)
+    colors = None
+    if "rgb" in fields or "rgba" in fields:  # PCL packs 8-bit r, g, b into one 32-bit value
+        packed = fields.pop("rgb" if "rgb" in fields else "rgba")
+        bits = packed.astype(np.float32).view(np.uint32) if packed.dtype.kind == "f" else packed.astype(np.uint32)
+        colors = np.stack([(bits >> 16) & 255, (bits >> 8) & 255, bits & 255], 1).astype(np.uint8)
+    elif {"red", "green", "blue"} <= set(fields):
+        rgb = [fields.pop(c) for c in ("red", "green", "blue")]
+        scale = 255.0 if all(c.dtype.kind == "f" for c in rgb) and max(float(c.max()) for c in rgb) <= 1.0 else 1.0
+        colors = np.clip(np.round(np.stack(rgb, 1) * scale), 0, 255).astype(np.uint8)
+    return points, colors, fields
+
+
+def scan_stamp(fields: dict[str, np.ndarray]) -> float | None:
+    """A scan's timestamp in seconds from its per-point time field (`TIME_FIELDS`): the earliest
+    point's, when the times are absolute (in s, ms, us or ns since 1970, told by their size);
+    ``None`` when there is no such field or its times are offsets within the scan."""
+    for name in TIME_FIELDS:
+        if name in fields and np.size(fields[name]):
+            first = float(np.min(fields[name]))
+            for unit in (1e9, 1e6, 1e3, 1.0):  # ns, us, ms, s
+                if first >= _EPOCH_1973 * unit:
+                    return first / unit
+            return None
+    return None
 
 
 def read_point_cloud(path: Path, budget: ReadBudget | None = None) -> Cloud:
-    """Read one PLY/PCD file with Open3D; non-finite points are dropped.
+    """Read one PLY, PCD or Velodyne ``.bin`` file, every per-point field kept (layouts not
+    parsed here: Open3D, points and colours); non-finite points are dropped.
 
-    With a ``budget``, the point count the file's header declares is checked against it before
-    Open3D reads (and inflates) the file, and the points read are charged to it.
+    With a ``budget``, the point count the file's header declares (a ``.bin``: its size) is
+    checked against it before the file is read, and the points read are charged to it.
 
     Raises:
-        FormatError: Open3D cannot read the file or finds no points in it, or it declares
-            more points than the budget has left.
+        FormatError: the file cannot be read or holds no points, or it declares more points
+            than the budget has left.
     """
-    from strep_core._open3d import o3d
-
     if not path.is_file():
         raise FormatError(f"{path}: no such point-cloud file")
     with open(path, "rb") as f:
         head = f.read(64 * 1024)
-    if path.suffix.lower() == ".ply" and not head.startswith(b"ply"):  # else Open3D's RPly prints to stderr
+    suffix = path.suffix.lower()
+    if suffix == ".ply" and not head.startswith(b"ply"):  # else Open3D's RPly prints to stderr
         raise FormatError(f"{path}: not a PLY file (a PLY file starts with the line 'ply')")
     if budget is not None:
-        declared = declared_cloud_points(head)
+        declared = path.stat().st_size // 16 if suffix == ".bin" else declared_cloud_points(head)
         if declared is not None:
             budget.take_points(declared, str(path), declared=True)
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        cloud = o3d.io.read_point_cloud(path)
-    pts = np.asarray(cloud.points, dtype=np.float64)
+    parsed = _parsed(path, path.read_bytes())
+    fields: dict[str, np.ndarray] = {}
+    if parsed is None:
+        pts, colors = _read_open3d(path)
+    else:
+        pts, colors, fields = parsed
     if len(pts) == 0:
         raise FormatError(f"{path}: no points could be read (truncated or not a {path.suffix} file?)")
-    colors = None
-    if cloud.has_colors():
-        colors = np.round(np.clip(np.asarray(cloud.colors), 0.0, 1.0) * 255.0).astype(np.uint8)
     ok = np.all(np.isfinite(pts), axis=1, keepdims=False).reshape(-1)
     dropped = int(ok.size - np.count_nonzero(ok))
     if dropped:
         pts = pts[ok]
         colors = None if colors is None else colors[ok]
+        fields = {k: v[ok] for k, v in fields.items()}
     if budget is not None:
         budget.take_points(len(pts), str(path))
-    return Cloud(pts, colors, dropped)
+    return Cloud(pts, colors, dropped, fields)
+
+
+def _read_open3d(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    from strep_core._open3d import o3d
+
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        cloud = o3d.io.read_point_cloud(path)
+    colors = None
+    if cloud.has_colors():
+        colors = np.round(np.clip(np.asarray(cloud.colors), 0.0, 1.0) * 255.0).astype(np.uint8)
+    return np.asarray(cloud.points, dtype=np.float64), colors
 
 
 def _frame_number(path: Path) -> float:
@@ -164,16 +233,23 @@ def read_folder(
         all_poses, matched = _match_poses(poses_path, poses_format, files, path)
         gt = all_poses[sel]
         pose_info = {"poses_file": str(poses_path), "poses_matched_by": matched}
+        calib = _kitti_calibration(path) if all(f.suffix.lower() == ".bin" for f in files) else None
+        if calib is not None and matched == "order" and read_poses(poses_path, format=poses_format).stamps is None:
+            # KITTI's poses are its left camera's: the LiDAR's are Tr^-1 P Tr (p_cam = Tr p_velo)
+            gt = np.linalg.inv(calib[1]) @ gt @ calib[1]
+            pose_info["poses_frame"] = f"LiDAR, through Tr of {calib[0]}"
 
     budget = budget or ReadBudget()
-    pts, cols = [], []
+    pts, cols, attrs = [], [], []
     dropped = 0
     for i in sel:
         cloud = read_point_cloud(files[i], budget)
         pts.append(cloud.points)
         cols.append(cloud.colors)
+        attrs.append(cloud.fields)
         dropped += cloud.dropped
     colors = cols if cols and all(c is not None for c in cols) else None
+    point_info = _point_fields(attrs, [files[i].suffix.lower() for i in sel])
     try:
         return Sequence(
             frames=pts,
@@ -188,10 +264,49 @@ def read_folder(
                 "files": [files[i].name for i in sel],
                 "dropped_points": dropped,
                 **pose_info,
+                **point_info,
             },
         )
     except SequenceError as exc:
         raise SequenceError(f"{path}: {exc}") from exc
+
+
+def _kitti_calibration(folder: Path) -> tuple[str, np.ndarray] | None:
+    """``(path, Tr)`` of a KITTI ``calib.txt`` beside the scans or one folder up (``Tr:`` 12
+    numbers, LiDAR -> left camera); ``None`` when there is none."""
+    for place in (folder, folder.parent):
+        calib = place / "calib.txt"
+        if not calib.is_file():
+            continue
+        for line in calib.read_text(encoding="utf-8", errors="replace").splitlines():
+            key, _, rest = line.partition(":")
+            if key.strip() == "Tr":
+                try:
+                    values = np.array(rest.split(), dtype=np.float64)
+                except ValueError as exc:
+                    raise FormatError(f"{calib}: Tr is not 12 numbers ({exc})") from exc
+                if values.shape != (12,) or not np.isfinite(values).all():
+                    raise FormatError(f"{calib}: Tr has {values.size} numbers, not 12")
+                return str(calib), np.vstack([values.reshape(3, 4), [0.0, 0.0, 0.0, 1.0]])
+    return None
+
+
+def _point_fields(attrs: list[dict[str, np.ndarray]], suffixes: list[str]) -> dict[str, object]:
+    """The meta entries of the frames' per-point fields: the names every frame has, their
+    arrays per frame, the scans' stamps when each has one; ``format`` velodyne-bin for ``.bin``."""
+    out: dict[str, object] = {}
+    if suffixes and all(s == ".bin" for s in suffixes):
+        out["format"] = "velodyne-bin"
+    if not attrs:
+        return out
+    names = [n for n in attrs[0] if all(n in a for a in attrs[1:])]
+    if names:
+        out["point_fields"] = names
+        out["point_attributes"] = [{n: a[n] for n in names} for a in attrs]
+    stamps = [scan_stamp(a) for a in attrs]
+    if all(s is not None for s in stamps):
+        out["stamps"] = stamps
+    return out
 
 
 def _parse_conf(conf: Path) -> list[tuple[str, np.ndarray]]:

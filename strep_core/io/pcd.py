@@ -1,7 +1,9 @@
-"""A small reader and writer of PCD v0.7 files (ascii and binary; xyz float fields).
+"""A small reader and writer of PCD v0.7 files (ascii and binary).
 
 Open3D reads PCD too, but DeepMapping's frames come inside a ``.tar``; parsing bytes here
-avoids extracting to disk and keeps the 2D reader free of Open3D.
+avoids extracting to disk and keeps the 2D reader free of Open3D. `parse_pcd_fields` keeps
+every field of the file (a LiDAR's intensity, ring, time; normals, curvature), which Open3D's
+legacy reader drops; ``binary_compressed`` files are left to Open3D (`strep_core.io.folder`).
 """
 
 from __future__ import annotations
@@ -22,11 +24,27 @@ _TYPES = {
 }
 
 
+class PcdLayoutError(FormatError):
+    """A PCD layout this reader does not parse (``binary_compressed``): read it with Open3D."""
+
+
 def parse_pcd(data: bytes, *, name: str = "<pcd>") -> np.ndarray:
     """Parse PCD bytes into an ``(N, 3)`` float64 array of x, y, z.
 
     Raises:
         FormatError: not a PCD file, an unsupported layout, or truncated data.
+    """
+    fields = parse_pcd_fields(data, name=name)
+    return np.stack([fields["x"], fields["y"], fields["z"]], 1).astype(np.float64)
+
+
+def parse_pcd_fields(data: bytes, *, name: str = "<pcd>") -> dict[str, np.ndarray]:
+    """Parse PCD bytes into every field, in the file's order: ``(N,)`` arrays (``(N, c)`` for a
+    field of COUNT c), in the field's own type (float64 for ascii files), copies of the bytes.
+
+    Raises:
+        FormatError: not a PCD file, an unsupported layout (``binary_compressed``), or
+            truncated data.
     """
     header: dict[str, list[str]] = {}
     pos = 0
@@ -53,6 +71,10 @@ def parse_pcd(data: bytes, *, name: str = "<pcd>") -> np.ndarray:
         mode = header["DATA"][0].lower()
     except (KeyError, ValueError, IndexError) as exc:
         raise FormatError(f"{name}: malformed PCD header ({exc})") from exc
+    # PCL pads records with fields named "_": unique names here, dropped from the output
+    fields = [f"_pad{i}" if f == "_" else f for i, f in enumerate(fields)]
+    if len(set(fields)) != len(fields):
+        raise FormatError(f"{name}: PCD names a field twice ({fields})")
     if not {"x", "y", "z"} <= set(fields):
         raise FormatError(f"{name}: PCD has fields {fields}, needs x y z")
     if n < 0 or not (len(fields) == len(sizes) == len(types) == len(counts)):
@@ -65,10 +87,13 @@ def parse_pcd(data: bytes, *, name: str = "<pcd>") -> np.ndarray:
             raise FormatError(f"{name}: PCD has {len(text) // max(width, 1)} of {n} points")
         table = np.asarray(text[: n * width], dtype=np.float64).reshape(n, width)
         offsets = np.cumsum([0, *counts[:-1]])
-        cols = [table[:, offsets[fields.index(a)]] for a in "xyz"]
-        return np.stack(cols, 1)
+        return {
+            f: table[:, o] if c == 1 else table[:, o : o + c].copy()
+            for f, o, c in zip(fields, offsets, counts, strict=True)
+            if not f.startswith("_pad")
+        }
     if mode != "binary":
-        raise FormatError(f"{name}: PCD DATA {mode!r} is not supported (ascii or binary only)")
+        raise PcdLayoutError(f"{name}: PCD DATA {mode!r} is not supported (ascii or binary only)")
     try:
         dtype = np.dtype(
             [
@@ -82,7 +107,7 @@ def parse_pcd(data: bytes, *, name: str = "<pcd>") -> np.ndarray:
     if len(data) - pos < need:
         raise FormatError(f"{name}: PCD data truncated ({len(data) - pos} of {need} bytes)")
     rec = np.frombuffer(data, dtype=dtype, count=n, offset=pos)
-    return np.stack([rec["x"], rec["y"], rec["z"]], 1).astype(np.float64)
+    return {f: np.array(rec[f]) for f in dtype.names or () if not f.startswith("_pad")}
 
 
 def format_pcd(points: np.ndarray) -> bytes:

@@ -18,7 +18,9 @@ A pairwise result ``T`` maps *source* coordinates into *target* coordinates:
   as extra starts of the coarsest stage; the best start goes on: in 3D the lowest trimmed
   distance (`trimmed_distance`: the closest half of the matches both ways), in 2D the most
   source points matched within the finest distance (ties: the lower RMSE). Point-to-plane ICP
-  converges only from within about 10 degrees; laser keyframes turn by up to 20 to 30;
+  converges only from within about 10 degrees; laser keyframes turn by up to 20 to 30; in 3D
+  the starts may run on coarser copies of the clouds (``search_voxel``) and turn about the axis
+  refined by the source's horizontal normals (``yaw_refine``): a LiDAR (docs/design/lidar.md);
 * ``degeneracy``: after the last stage, translation along directions the matched normals barely
   constrain returns to the guess's (`keep_guess_where_weak`); 0: off;
 * ``correlative`` (2D): the stages also run from a correlative scan match around the guess
@@ -275,24 +277,58 @@ def _best_yaw_start(
 
     from strep_core._open3d import o3d
 
-    if not params.planar:  # the trimmed distance's inputs, once for every start
+    axis = np.asarray(params.yaw_axis, dtype=np.float64)
+    if not params.planar:
+        if params.yaw_refine > 0 and source.has_normals():
+            from strep_core.registration.lidar import refine_axis
+
+            axis = refine_axis(np.asarray(source.normals), axis, float(np.degrees(params.yaw_refine)))
+        if params.search_voxel is not None:  # the starts on coarser copies (docs/design/lidar.md)
+            source, target = (_coarser(c, params.search_voxel) for c in (source, target))
+        # the trimmed distance's inputs, once for every start
         src_pts, tgt_pts = np.asarray(source.points), np.asarray(target.points)
         tree = cKDTree(tgt_pts)
-    best, best_score = None, (np.inf, 0.0)
-    for yaw in (0.0, *offsets):
-        turn = np.eye(4)
-        turn[:3, :3] = g.so3_exp(np.asarray(params.yaw_axis, dtype=np.float64) * yaw)
-        stage = _icp_stage(source, target, init @ turn, coarse, params, criteria)
-        if stage is None:
-            continue
-        if params.planar:
-            ev = o3d.pipelines.registration.evaluate_registration(source, target, fine, stage[0])
-            score = (-round(float(ev.fitness), 3), float(ev.inlier_rmse))
-        else:
-            score = (trimmed_distance(src_pts, tgt_pts, stage[0], target_tree=tree), 0.0)
-        if score < best_score:
-            best, best_score = stage, score
+
+    def starts(yaws: tuple[float, ...]) -> tuple[tuple[np.ndarray, float, float] | None, tuple[float, float]]:
+        best, best_score = None, (np.inf, 0.0)
+        for yaw in yaws:
+            turn = np.eye(4)
+            turn[:3, :3] = g.so3_exp(axis * yaw)
+            stage = _icp_stage(source, target, init @ turn, coarse, params, criteria)
+            if stage is None:
+                continue
+            if params.planar:
+                ev = o3d.pipelines.registration.evaluate_registration(source, target, fine, stage[0])
+                score = (-round(float(ev.fitness), 3), float(ev.inlier_rmse))
+            else:
+                score = (trimmed_distance(src_pts, tgt_pts, stage[0], target_tree=tree), 0.0)
+            if score < best_score:
+                best, best_score = stage, score
+        return best, best_score
+
+    tried = (0.0, *offsets)
+    best, best_score = starts(tried)
+    cell = params.search_voxel or params.voxel or 0.0
+    if not params.planar and params.yaw_verify > 0 and offsets and best_score[0] > params.yaw_verify * cell:
+        # no start matched as a right match does: every other heading, at the search's step
+        step = abs(offsets[0])
+        rest = tuple(
+            float(y)
+            for y in np.arange(-np.pi, np.pi - 1e-9, step)
+            if min(abs(np.angle(np.exp(1j * (y - t)))) for t in tried) > 1e-6
+        )
+        other, other_score = starts(rest)
+        if other is not None and other_score < best_score:
+            best = other
     return best
+
+
+def _coarser(cloud: o3d.geometry.PointCloud, voxel: float) -> o3d.geometry.PointCloud:
+    """``cloud`` downsampled to ``voxel`` (normals averaged per voxel, then unit length)."""
+    out = cloud.voxel_down_sample(voxel)
+    if out.has_normals():
+        out.normalize_normals()
+    return out if len(out.points) >= 3 else cloud
 
 
 def trimmed_distance(

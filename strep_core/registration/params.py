@@ -45,6 +45,15 @@ class RegistrationParams:
         yaw_search: extra yaw offsets (radians) tried as starting guesses of the coarsest ICP
             stage (`strep_core.registration.pairwise`); empty: the initial guess alone.
         yaw_axis: unit axis of those turns in the source sensor's frame (``z`` in 2D).
+        search_voxel: 3D: the yaw search's starts run on copies of the clouds downsampled to
+            this voxel (sequence unit), the later stages on the clouds as prepared; ``None``:
+            every stage on the prepared clouds.
+        yaw_refine: 3D: before the yaw search, the axis moves to the mean of the source's
+            normals within this angle (radians) of it (its floor and ceiling: a hand-held
+            LiDAR tilts; `strep_core.registration.lidar.refine_axis`); 0: off.
+        yaw_verify: 3D: when the best start's trimmed distance exceeds this many voxels of the
+            clouds the search ran on, every other heading is tried too (at the search's step);
+            0: off.
         degeneracy: keep the guess's translation along weakly constrained directions (see
             `strep_core.registration.pairwise`); 0: off.
         correlative: 2D: also start from a correlative scan match (`strep_core.registration.pairwise`).
@@ -69,6 +78,9 @@ class RegistrationParams:
     threads: int = 1
     yaw_search: tuple[float, ...] = ()
     yaw_axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    search_voxel: float | None = None
+    yaw_refine: float = 0.0
+    yaw_verify: float = 0.0
     degeneracy: float = 0.0
     correlative: CorrelativeParams | None = None
     velocity_prior: bool = False
@@ -129,6 +141,9 @@ def resolve_params(seq: Sequence, cfg: ClassicalConfig) -> RegistrationParams:
         threads=cfg.threads,
         yaw_search=yaw_offsets(icp.yaw_search, icp.yaw_step) if seq.dim == 2 or axis is not None else (),
         yaw_axis=(0.0, 0.0, 1.0) if axis is None or seq.dim == 2 else axis,
+        search_voxel=icp.search_voxel * voxel if seq.dim == 3 and icp.search_voxel > 1 and voxel > 0 else None,
+        yaw_refine=float(np.radians(icp.yaw_refine)) if seq.dim == 3 else 0.0,
+        yaw_verify=icp.yaw_verify if seq.dim == 3 else 0.0,
         degeneracy=icp.degeneracy,
         correlative=correlative,
         velocity_prior=icp.motion_prior == "velocity",
