@@ -27,6 +27,7 @@ from strep_core.errors import FormatError
 from strep_core.io import load_sequence, read_folder
 from strep_core.io.folder import read_point_cloud, scan_stamp
 from strep_core.registration import align_frames, lidar, resolve_params
+from strep_core.resolve import resolve
 from strep_core.runner import run
 
 N = 50
@@ -182,7 +183,7 @@ def test_the_probe_names_lidar_balm_a_lidar_and_estimates_its_vertical(balm) -> 
     geo = found.measures["lidar"]
     assert geo["azimuth_deg"] > 300 and geo["range_p95"] > 12  # a full turn of azimuth, tens of metres
     assert "intensity" in geo["fields"]
-    cfg = profiles.resolve(RunConfig(method="icp"), balm)
+    cfg = resolve(RunConfig(method="icp"), balm).config
     axis = np.asarray(cfg.classical.icp.yaw_axis)
     assert cfg.profile == "lidar" and axis[2] > 0.98  # the sensor's z, within 11 degrees
     assert cfg.classical.icp.yaw_search == 45.0 and cfg.classical.icp.search_voxel == 2.0
@@ -212,7 +213,7 @@ def test_a_29_degree_turn_between_scans_is_registered(balm) -> None:
     pair = balm.select("9:11")
     truth = g.relative(pair.poses[0], pair.poses[1])
     assert np.degrees(g.rotation_angle(truth)) > 28
-    cfg = profiles.resolve(RunConfig(method="icp", profile="lidar"), balm)
+    cfg = resolve(RunConfig(method="icp", profile="lidar"), balm).config
     params = resolve_params(pair, cfg.classical)
     wrong_way = np.eye(4)  # a guess 30 degrees the other way: 59 degrees from the turn
     wrong_way[:3, :3] = g.so3_exp(np.asarray(params.yaw_axis) * np.radians(-30))
