@@ -288,18 +288,20 @@ def _match(
     """Branch and bound within the bounds around ``pred``, refinement, verdict; ``anchor`` is
     the last accepted scan's pose and the bounds are on the motion since it."""
     res = p.resolution
-    window = step_bound + float(np.hypot(*(pred[:2, 2] - anchor[:2, 2])))
+    # the search covers exactly the bounds around the anchor; the prior leans to the prediction
+    window = step_bound
+    yaw_window = min(np.pi, turn_bound)
     sm_params = ScanMatchParams(
         window=window,
         resolution=res,
-        yaw_window=min(np.pi, turn_bound),
+        yaw_window=yaw_window,
         max_range=p.max_range,
         max_points=200,
         prior_weight=p.prior_weight,
         prior_scale=p.prior_scale,
     )
-    matcher = ScanMatcher(target, sm_params, center=pred[:2, 2])
-    found = matcher.match(points, pred, prior=pred[:2, 2])
+    matcher = ScanMatcher(target, sm_params, center=anchor[:2, 2])
+    found = matcher.match(points, anchor, prior=pred[:2, 2])
     tree = cKDTree(target)
     normals = normals_2d(target, tree)
     pose_a, info_a, _ = refine(points, tree, target, normals, found.pose, 3 * res)
@@ -321,15 +323,16 @@ def _match(
     gap = float(np.hypot(*apart[:2, 2]))
     verdict: Verdict = "accepted"
     pose, info, score = pose_a, info_a, score_a
-    two_peaks = gap > 2 * res or abs(float(np.arctan2(apart[1, 0], apart[0, 0]))) > np.radians(1.0)
-    # two peaks of about one height (a turn away from the prediction costs): steady motion decides
-    if two_peaks and score_b - _turn_cost(pred, pose_b, p) >= score_a - _turn_cost(pred, pose_a, p) - p.peak_margin:
-        verdict, pose, info, score = "ambiguous", pose_b, info_b, score_b
     floor = p.min_score * (float(np.median(motion.scores)) if motion.scores else 0.6)
+    two_peaks = gap > 2 * res or abs(float(np.arctan2(apart[1, 0], apart[0, 0]))) > np.radians(1.0)
+    # two real peaks of about one height (a turn away from the prediction costs): steady motion decides
+    near = score_b - _turn_cost(pred, pose_b, p) >= score_a - _turn_cost(pred, pose_a, p) - p.peak_margin
+    if two_peaks and score_b >= floor and near:
+        verdict, pose, info, score = "ambiguous", pose_b, info_b, score_b
     if recent is not None and score < p.weak_score * floor / p.min_score and verdict == "accepted":
         # a weak peak may alias an older part of the submap: the latest scan, which shares the
         # most of this view, must agree (docs/design/laser-slam.md, belgioioso scan 89)
-        latest = ScanMatcher(recent, sm_params, center=pred[:2, 2])
+        latest = ScanMatcher(recent, sm_params, center=anchor[:2, 2])
         if latest.evaluate(points, pose_b) + score_b > latest.evaluate(points, pose_a) + score_a:
             verdict, pose, info, score = "ambiguous", pose_b, info_b, score_b
     rel = g.relative(anchor, pose)
@@ -338,8 +341,13 @@ def _match(
     wide = np.diag([step_bound**2, step_bound**2, turn_bound**2])
     if step > step_bound or turn > turn_bound:  # unphysical: bridged at the prediction
         return Match("failed", score, pred.copy(), wide, window)
-    if score < floor:  # a weak peak within the bounds: kept, but the graph may move it freely
-        return Match("failed", score, pose, wide, window)
+    if score < floor:  # a weak peak: the latest scan picks the bridge, free for the graph
+        bridge = pose_b
+        if recent is not None:
+            latest = ScanMatcher(recent, sm_params, center=anchor[:2, 2])
+            if latest.evaluate(points, pose_a) + score_a > latest.evaluate(points, pose_b) + score_b:
+                bridge = pose_a
+        return Match("failed", score, bridge, wide, window)
     motion.scores = [*motion.scores, score][-p.history :]
     cov = _motion_covariance(info, pose, res)
     if verdict == "ambiguous":  # uncertain along the line between the two peaks
