@@ -95,7 +95,7 @@ def search_loops(
         return [], 0
     var = np.concatenate([[0.0], np.cumsum([np.trace(m.covariance[:2, :2]) for m in matches[1:]])])
     centres = np.array([sm.cloud(res).mean(0) for sm in finished])
-    ends = np.array([sm.first + sm.count - 1 for sm in finished])
+    ends = np.array([sm.scans[-1] for sm in finished])
     tree = cKDTree(centres)
     scores = [m.score for m in matches if m.verdict == "accepted"]
     floor = params.min_score * (float(np.median(scores)) if scores else 0.8)
@@ -117,12 +117,12 @@ def search_loops(
         near.sort(key=lambda s: float(np.linalg.norm(centres[s] - pos)))
         for s in near[: params.candidates]:
             sm = finished[s]
-            sigma = float(np.sqrt(max(var[k] - var[sm.first], 0.0)))
+            sigma = float(np.sqrt(max(var[k] - var[sm.anchor], 0.0)))
             radius = min(params.max_radius, params.radius + 3 * sigma)
             if np.linalg.norm(centres[s] - pos) > radius + params.max_radius:
                 continue
             tried += 1
-            edge = _close(frames[k], poses[k], sm, poses[sm.first], k, radius, slam, cache)
+            edge = _close(frames[k], poses[k], sm, poses[sm.anchor], k, radius, slam, cache)
             if edge is not None and edge.score >= floor and (best is None or edge.score > best.score):
                 best = edge
         if best is not None:
@@ -172,7 +172,7 @@ def _close(
     cov = np.linalg.pinv(info + np.diag([1e-6, 1e-6, 1e-6])) + floor
     rot = np.eye(3)
     rot[:2, :2] = pose[:2, :2].T
-    return Edge(sm.first, k, rel, rot @ cov @ rot.T, score, loop=True)
+    return Edge(sm.anchor, k, rel, rot @ cov @ rot.T, score, loop=True)
 
 
 def optimise(poses: np.ndarray, edges: Sequence[Edge], *, robust: bool = True) -> tuple[np.ndarray, int]:

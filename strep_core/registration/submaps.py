@@ -86,17 +86,27 @@ class Match:
 
 @dataclass
 class Submap:
-    """Scans ``first .. first + count - 1`` in the world frame of the local SLAM."""
+    """Scans (``scans``, their indices) in the world frame of the local SLAM; ``first`` is the
+    scan index from which it takes scans."""
 
     first: int
     points: list[np.ndarray] = field(default_factory=list)
-    count: int = 0
+    scans: list[int] = field(default_factory=list)
     finished: bool = False
     _cloud: np.ndarray | None = None
 
-    def insert(self, world_points: np.ndarray) -> None:
+    @property
+    def count(self) -> int:
+        return len(self.scans)
+
+    @property
+    def anchor(self) -> int:
+        """The first scan inserted: loop closures are edges from it."""
+        return self.scans[0]
+
+    def insert(self, world_points: np.ndarray, k: int) -> None:
         self.points.append(world_points)
-        self.count += 1
+        self.scans.append(k)
         self._cloud = None
 
     def cloud(self, resolution: float) -> np.ndarray:
@@ -234,7 +244,7 @@ def local_slam(
         world = g.apply(poses[k], local[k])
         for sm in submaps:
             if not sm.finished:
-                sm.insert(world)
+                sm.insert(world, k)
         active = [sm for sm in submaps if not sm.finished]
         if active[-1].count >= max(1, p.submap_scans // 2):
             submaps.append(Submap(k + 1))
