@@ -4,9 +4,10 @@ Suites (``--suites``):
 
 * ``v1_pose0``: DeepMapping's public 2D sequence (real file in the shared data), pixels;
 * ``sim2d``: simulated 2D lidar like the paper's, 20 trajectories over 3 maps (seeded), pixels;
-* ``carmen``: real laser logs, intel, aces and belgioioso windows 0:100 and 300:400 (quick:
-  0:100), metres, from identity (the logs' odometry equals their corrected poses: the reader
-  drops it); the probe picks the ``laser-keyframes`` profile (`strep_core.profiles`);
+* ``carmen``: real laser logs, the eight of the shared data: windows 0:100 and 300:400 (edmonton's
+  340 scans: 300:340), and every whole log (``identity`` and ``multiway`` only: the planar-laser
+  SLAM, docs/design/laser-slam.md); quick: intel, aces and belgioioso 0:100. Metres, from
+  identity (the logs' odometry equals their corrected poses: the reader drops it);
 * ``sim3d``: simulated indoor depth like the paper's AVD setting, 16-frame trajectories, metres
   (the probe picks the ``depth-turning`` profile);
 * ``sevenscenes``: real Kinect depth (Microsoft 7-Scenes, frames 0-99 in the shared data),
@@ -74,6 +75,7 @@ class BenchCase:
     start: str = "pose-graph"
     source: str | None = None  # the input a user gives `strep run` (None: generated in memory)
     frames: str | None = None  # the frame selection the loader applied
+    methods: tuple[str, ...] | None = None  # only these of the requested methods (None: all)
 
 
 def _v1_pose0(data: Path, quick: bool) -> Iterator[BenchCase]:
@@ -97,22 +99,37 @@ def _sim2d(data: Path, quick: bool) -> Iterator[BenchCase]:
         )
 
 
+CARMEN_LOGS = (
+    "intel",
+    "aces",
+    "belgioioso",
+    "acapulco",
+    "edmonton",
+    "freiburg-079",
+    "freiburg-campus",
+    "infinite-corridor",
+)
+WHOLE_LOG_METHODS = ("identity", "multiway")  # whole logs: the front and back end, not the learned refinement
+
+
 def _carmen(data: Path, quick: bool) -> Iterator[BenchCase]:
     from strep_core.io.carmen import read_carmen
 
-    windows = ["0:100"] if quick else ["0:100", "300:400"]
-    for log in ("intel", "aces", "belgioioso"):
+    logs = CARMEN_LOGS[:3] if quick else CARMEN_LOGS
+    for log in logs:
         path = data / "carmen" / f"{log}-corrected.log.gz"
+        windows: list[str | None] = ["0:100"] if quick else ["0:100", "300:400", None]
         for w in windows:
 
-            def load(path: Path = path, w: str = w, log: str = log) -> Sequence:
+            def load(path: Path = path, w: str | None = w, log: str = log) -> Sequence:
                 # the reader drops these logs' odometry (it equals the corrected poses): every
                 # method starts from identity, as `strep run LOG --frames W` does
                 seq = read_carmen(path, frames=w)
                 assert seq.initial_poses is None
-                return replace(seq, name=f"{log}[{w}]")
+                return replace(seq, name=f"{log}[{w or 'all'}]")
 
-            yield BenchCase("carmen", f"{log}[{w}]", load, source=str(path), frames=w)
+            methods = WHOLE_LOG_METHODS if w is None else None
+            yield BenchCase("carmen", f"{log}[{w or 'all'}]", load, source=str(path), frames=w, methods=methods)
 
 
 def _sim3d(data: Path, quick: bool) -> Iterator[BenchCase]:
@@ -250,7 +267,7 @@ def run_case(case: BenchCase, methods: list[str], quick: bool, threads: int | No
 
     seq = case.load()
     rows = []
-    for m in methods:
+    for m in methods if case.methods is None else [m for m in methods if m in case.methods]:
         t0 = time.perf_counter()
         try:
             cfg = case_config(case, m, quick, seq)

@@ -207,6 +207,12 @@ class PoseGraphConfig(Section):
         description="pose graph: Open3D's preference_loop_closure (below 1: trust odometry edges more, above 1: "
         "loop closures more)",
     )
+    frontend: Literal["auto", "submaps", "icp"] = Field(
+        default="auto",
+        description="multiway: submaps = planar-laser SLAM (each scan against a submap, verified loops against "
+        "finished submaps, a robust GTSAM graph; docs/design/laser-slam.md); icp = the incremental ICP chain and "
+        "Open3D's pose graph; auto: submaps for planar laser scans, icp otherwise",
+    )
     loop_global: Literal["auto", "on", "off"] = Field(
         default="auto",
         description="multiway, 2D: loop closures proposed by the global scan matcher (each keyframe against earlier "

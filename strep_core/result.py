@@ -115,6 +115,10 @@ def write_outputs(result: Result, out_dir: str | Path) -> dict[str, Path]:
     write_ply(files["map.ply"], points, frame_colors(labels, len(seq)))
     write_json(files["metrics.json"], result.metrics)
     write_json(files["config.json"], result.config.model_dump(mode="json"))
+    matches = result.artifacts.get("matches")
+    if matches is not None:  # the planar-laser front end's verdicts, scores and covariances
+        files["matches.json"] = out / "matches.json"
+        write_json(files["matches.json"], matches)
     model = result.artifacts.get("model")
     if model is not None:
         from strep_core.artifacts import save_model

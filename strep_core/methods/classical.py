@@ -38,8 +38,10 @@ from strep_core import geometry as g
 from strep_core import metrics
 from strep_core import registration as reg
 from strep_core.config import KissConfig, RunConfig
+from strep_core.errors import ConfigError
 from strep_core.events import IterationEvent, pose_list
 from strep_core.methods.base import MethodOutput, RunContext, method
+from strep_core.registration.laser_slam import is_planar_laser, laser_slam
 from strep_core.sequence import Sequence
 
 
@@ -137,8 +139,10 @@ def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
     Information matrices come from `get_information_matrix_from_point_clouds`. 2D runs in 3D
     at ``z = 0`` and the result is projected onto SE(2).
     """
-    params = reg.resolve_params(seq, config.classical)
     cfg = config.classical.posegraph
+    if cfg.frontend == "submaps" or (cfg.frontend == "auto" and is_planar_laser(seq)):
+        return _laser_multiway(seq, init, config, ctx)
+    params = reg.resolve_params(seq, config.classical)
     k_frames = len(seq)
     progress = _Progress(seq, init, ctx, total=2 * k_frames, interval=config.classical.event_interval_frames)
     odo = reg.incremental_icp(seq, init, params, on_frame=lambda k, poses: progress.step(k + 1, poses, k + 1))
@@ -212,6 +216,44 @@ def multiway_method(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
             **frames,
         },
         metrics=counts,
+    )
+
+
+def _laser_multiway(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: RunContext) -> MethodOutput:
+    """``multiway`` on planar laser scans: `strep_core.registration.laser_slam`."""
+    if seq.dim != 2:
+        raise ConfigError("classical.posegraph.frontend=submaps registers planar (2D) scans only")
+    k_frames = len(seq)
+    progress = _Progress(seq, init, ctx, total=2 * k_frames, interval=config.classical.event_interval_frames)
+    state: dict[str, np.ndarray] = {}
+
+    def on_scan(k: int, poses: np.ndarray) -> None:
+        state["poses"] = poses
+        progress.step(k + 1, poses, k + 1)
+
+    def on_loop_search(k: int) -> None:
+        progress.step(k_frames + k + 1, state["poses"], k_frames)
+
+    out = laser_slam(seq, init[0], on_scan=on_scan, on_loop_search=on_loop_search)
+    progress.step(2 * k_frames, out.poses, k_frames)
+    verdicts = out.verdicts()
+    return MethodOutput(
+        poses=out.poses,
+        iterations=2 * k_frames,
+        history=progress.history,
+        timings=out.timings,
+        artifacts={
+            "loop_candidates": out.loops_tried,
+            "loop_source": "submaps",
+            "loop_edges": len(out.loops),
+            "matches": out.report(),
+        },
+        metrics={
+            "matches_failed": verdicts["failed"],
+            "matches_ambiguous": verdicts["ambiguous"],
+            "loops_kept": out.loops_kept,
+            "loops_rejected": len(out.loops) - out.loops_kept,
+        },
     )
 
 

@@ -1,0 +1,224 @@
+"""Global SLAM of planar laser scans: loop closures against finished submaps, a robust graph.
+
+After Cartographer's global SLAM and Karto: every few metres a scan is searched against the
+finished submaps near its estimate (branch and bound, `strep_core.scanmatch`), within a radius
+that grows with the uncertainty accumulated along the chain since the submap; a candidate is
+verified (a high score, one peak: the refinement from the prediction must agree) before it is
+used, and the back end is robust to the wrong ones that remain: GTSAM's graduated
+non-convexity over the loop factors, the chain's factors known inliers (measurements:
+docs/design/laser-slam.md).
+
+Conventions: poses ``(3, 3)`` SE(2) local -> world; covariances ``(3, 3)`` over (x, y, theta)
+in the frame of the second pose of each edge.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from strep_core import geometry as g
+from strep_core.registration.submaps import LaserSlamParams, Match, Submap, normals_2d, refine
+from strep_core.scanmatch import ScanMatcher, ScanMatchParams
+
+
+@dataclass(frozen=True)
+class Edge:
+    """A relative pose ``T_i^-1 T_j`` (``(3, 3)``) with its covariance, in node j's frame."""
+
+    i: int
+    j: int
+    transform: np.ndarray
+    covariance: np.ndarray
+    score: float = 1.0
+    loop: bool = False
+
+
+@dataclass(frozen=True)
+class LoopParams:
+    """Loop-closure search (lengths in the sequence's unit).
+
+    Attributes:
+        every: a scan is searched after the chain travelled this far since the last one.
+        radius: search radius before any uncertainty; it grows by 3 sigma of the chain's.
+        max_radius: the radius's cap.
+        min_gap: submaps whose scans end fewer than this many scans before are not searched.
+        min_score: a closure scores at least this share of the chain's median score.
+    """
+
+    every: float
+    radius: float
+    max_radius: float
+    min_gap: int
+    min_score: float = 0.9
+    candidates: int = 2
+
+
+def loop_params(slam: LaserSlamParams, scale: float) -> LoopParams:
+    """Defaults from the data's scale and the submap size."""
+    return LoopParams(
+        every=1.0 * scale, radius=1.0 * scale, max_radius=3.0 * scale, min_gap=2 * slam.submap_scans, candidates=2
+    )
+
+
+def chain_edges(poses: np.ndarray, matches: Sequence[Match]) -> list[Edge]:
+    """Consecutive-scan edges from the local SLAM (failed matches keep their wide covariance)."""
+    edges = []
+    for k in range(1, len(poses)):
+        rel = g.relative(poses[k - 1], poses[k])
+        edges.append(Edge(k - 1, k, rel, matches[k].covariance, matches[k].score))
+    return edges
+
+
+def search_loops(
+    frames: Sequence[np.ndarray],
+    poses: np.ndarray,
+    matches: Sequence[Match],
+    submaps: Sequence[Submap],
+    slam: LaserSlamParams,
+    params: LoopParams,
+    *,
+    on_scan: Callable[[int], None] | None = None,
+) -> tuple[list[Edge], int]:
+    """Loop-closure edges (anchor scan of a submap -> scan) and the number of searches tried.
+
+    ``poses`` are the local SLAM's (the submaps' frame); the uncertainty between two scans is
+    the sum of the chain's translation variances between them, so a bridged failure widens it.
+    """
+    res = slam.resolution
+    finished = [sm for sm in submaps if sm.finished]
+    if not finished:
+        return [], 0
+    var = np.concatenate([[0.0], np.cumsum([np.trace(m.covariance[:2, :2]) for m in matches[1:]])])
+    centres = np.array([sm.cloud(res).mean(0) for sm in finished])
+    ends = np.array([sm.scans[-1] for sm in finished])
+    tree = cKDTree(centres)
+    scores = [m.score for m in matches if m.verdict == "accepted"]
+    floor = params.min_score * (float(np.median(scores)) if scores else 0.8)
+    edges: list[Edge] = []
+    tried = 0
+    travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poses[:, :2, 2], axis=0), axis=1))])
+    last = -np.inf
+    cache: dict[int, tuple[cKDTree, np.ndarray]] = {}
+    for k in range(len(poses)):
+        if travelled[k] - last < params.every:
+            continue
+        last = travelled[k]
+        if on_scan is not None:
+            on_scan(k)
+        pos = poses[k][:2, 2]
+        near = tree.query_ball_point(pos, params.max_radius + 0.5 * params.max_radius)
+        best: Edge | None = None
+        near = [s for s in near if ends[s] <= k - params.min_gap]
+        near.sort(key=lambda s: float(np.linalg.norm(centres[s] - pos)))
+        for s in near[: params.candidates]:
+            sm = finished[s]
+            sigma = float(np.sqrt(max(var[k] - var[sm.anchor], 0.0)))
+            radius = min(params.max_radius, params.radius + 3 * sigma)
+            if np.linalg.norm(centres[s] - pos) > radius + params.max_radius:
+                continue
+            tried += 1
+            edge = _close(frames[k], poses[k], sm, poses[sm.anchor], k, radius, slam, cache)
+            if edge is not None and edge.score >= floor and (best is None or edge.score > best.score):
+                best = edge
+        if best is not None:
+            edges.append(best)
+    return edges, tried
+
+
+def _close(
+    points: np.ndarray,
+    guess: np.ndarray,
+    sm: Submap,
+    anchor: np.ndarray,
+    k: int,
+    radius: float,
+    slam: LaserSlamParams,
+    cache: dict[int, tuple[cKDTree, np.ndarray]],
+) -> Edge | None:
+    """One scan against one finished submap; ``None`` unless one clear peak."""
+    res = slam.resolution
+    target = sm.cloud(res)
+    pts = np.asarray(points, dtype=np.float64)[:, :2]
+    params = ScanMatchParams(
+        window=radius, resolution=res, yaw_window=float(np.radians(30.0)), max_range=slam.max_range, max_points=120
+    )
+    matcher = ScanMatcher(target, params, center=guess[:2, 2])
+    found = matcher.match(pts, guess)
+    if sm.first not in cache:
+        tree = cKDTree(target)
+        cache[sm.first] = (tree, normals_2d(target, tree))
+    tree, normals = cache[sm.first]
+    pose, info, _ = refine(pts, tree, target, normals, found.pose, 3 * res)
+    score = matcher.evaluate(pts, pose)
+    if score < found.score:
+        pose, score = found.pose, found.score
+    # one peak: refined from the prediction, a pose elsewhere must score clearly lower
+    other, _, _ = refine(pts, tree, target, normals, guess, 3 * res)
+    if (
+        np.linalg.norm(other[:2, 2] - pose[:2, 2]) > 2 * res
+        and matcher.evaluate(pts, other) >= score - slam.peak_margin
+    ):
+        return None
+    eig = np.linalg.eigvalsh(info[:2, :2])
+    if eig[0] < slam.weak_ratio * max(eig[1], 1e-12):  # a corridor: no closure along its axis
+        return None
+    rel = g.relative(anchor, pose)
+    floor = np.diag([(0.5 * res) ** 2, (0.5 * res) ** 2, np.radians(0.25) ** 2])
+    cov = np.linalg.pinv(info + np.diag([1e-6, 1e-6, 1e-6])) + floor
+    rot = np.eye(3)
+    rot[:2, :2] = pose[:2, :2].T
+    return Edge(sm.anchor, k, rel, rot @ cov @ rot.T, score, loop=True)
+
+
+def optimise(poses: np.ndarray, edges: Sequence[Edge], *, robust: bool = True) -> tuple[np.ndarray, int]:
+    """Least squares over SE(2) with GTSAM; loop edges under graduated non-convexity.
+
+    Returns ``(poses (K, 3, 3), loop edges kept as inliers)``; node 0 stays where it is.
+    """
+    import gtsam
+
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    for k, pose in enumerate(poses):
+        values.insert(k, _pose2(pose))
+    graph.add(gtsam.PriorFactorPose2(0, _pose2(poses[0]), gtsam.noiseModel.Diagonal.Sigmas(np.full(3, 1e-6))))
+    known: list[int] = [0]
+    loop_index: list[int] = []
+    for e in edges:
+        noise = gtsam.noiseModel.Gaussian.Covariance(_spd(e.covariance))
+        graph.add(gtsam.BetweenFactorPose2(e.i, e.j, _pose2(e.transform), noise))
+        (loop_index if e.loop else known).append(graph.size() - 1)
+    if robust and loop_index:
+        gnc = gtsam.GncLMParams(gtsam.LevenbergMarquardtParams())
+        gnc.setKnownInliers(known)
+        gnc.setVerbosityGNC(gtsam.GncLMParams.Verbosity.SILENT)
+        opt = gtsam.GncLMOptimizer(graph, values, gnc)
+        result = opt.optimize()
+        weights = np.asarray(opt.getWeights())
+        kept = int((weights[loop_index] > 0.5).sum())
+    else:
+        result = gtsam.LevenbergMarquardtOptimizer(graph, values, gtsam.LevenbergMarquardtParams()).optimize()
+        kept = len(loop_index)
+    out = np.stack([_matrix(result.atPose2(k)) for k in range(len(poses))])
+    return out, kept
+
+
+def _spd(cov: np.ndarray) -> np.ndarray:
+    cov = 0.5 * (cov + cov.T)
+    w, v = np.linalg.eigh(cov)
+    return (v * np.maximum(w, 1e-12)) @ v.T
+
+
+def _pose2(pose: np.ndarray) -> Any:
+    import gtsam
+
+    return gtsam.Pose2(float(pose[0, 2]), float(pose[1, 2]), float(np.arctan2(pose[1, 0], pose[0, 0])))
+
+
+def _matrix(p: Any) -> np.ndarray:
+    return g.se2_from_xytheta(np.array([p.x(), p.y(), p.theta()]))

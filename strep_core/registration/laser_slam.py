@@ -1,0 +1,102 @@
+"""The planar-laser front and back end of ``multiway``: local SLAM on submaps, loops, GTSAM.
+
+`laser_slam` runs `strep_core.registration.submaps.local_slam` (every scan against a submap,
+verdicts and covariances), `strep_core.registration.laser_graph.search_loops` (scans against
+finished submaps) and `strep_core.registration.laser_graph.optimise` (graduated
+non-convexity over the loops). Every setting is derived from the data (`derive_params`,
+`loop_params`); why each is what it is: docs/design/laser-slam.md.
+
+Memory and time are linear in scans: a scan's points, one voxelised cloud per finished
+submap, a bounded number of searches per scan, and a sparse graph.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from strep_core.registration.laser_graph import Edge, chain_edges, loop_params, optimise, search_loops
+from strep_core.registration.submaps import Match, derive_params, local_slam
+from strep_core.sequence import Sequence
+
+
+@dataclass
+class LaserSlamResult:
+    """Poses ``(K, 3, 3)`` after the graph, the local SLAM's, and what each step decided."""
+
+    poses: np.ndarray
+    local_poses: np.ndarray
+    matches: list[Match]
+    loops: list[Edge]
+    loops_kept: int
+    loops_tried: int
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def verdicts(self) -> dict[str, int]:
+        """Count of each verdict over the consecutive matches (scan 0 excluded)."""
+        counts = Counter(m.verdict for m in self.matches[1:])
+        return {v: counts.get(v, 0) for v in ("accepted", "ambiguous", "failed")}
+
+    def report(self) -> dict[str, Any]:
+        """The run's match record: one entry per scan and per loop closure (JSON-ready)."""
+        return {
+            "scans": [
+                {
+                    "verdict": m.verdict,
+                    "score": round(float(m.score), 4),
+                    "covariance": np.round(m.covariance, 8).tolist(),
+                }
+                for m in self.matches
+            ],
+            "loops": [
+                {
+                    "from": e.i,
+                    "to": e.j,
+                    "score": round(float(e.score), 4),
+                    "covariance": np.round(e.covariance, 8).tolist(),
+                }
+                for e in self.loops
+            ],
+            "loops_kept": self.loops_kept,
+            "loops_tried": self.loops_tried,
+        }
+
+
+def laser_slam(
+    seq: Sequence,
+    start: np.ndarray,
+    *,
+    on_scan: Callable[[int, np.ndarray], None] | None = None,
+    on_loop_search: Callable[[int], None] | None = None,
+) -> LaserSlamResult:
+    """Register a planar laser sequence; scan 0 stays at ``start`` ``(3, 3)``."""
+    params = derive_params(seq.frames, seq.scale())
+    t0 = time.perf_counter()
+    local, matches, submaps = local_slam(seq.frames, params, start=start, on_scan=on_scan)
+    t1 = time.perf_counter()
+    loops, tried = search_loops(
+        seq.frames, local, matches, submaps, params, loop_params(params, seq.scale()), on_scan=on_loop_search
+    )
+    t2 = time.perf_counter()
+    poses, kept = optimise(local, chain_edges(local, matches) + loops)
+    t3 = time.perf_counter()
+    return LaserSlamResult(
+        poses=poses,
+        local_poses=local,
+        matches=matches,
+        loops=loops,
+        loops_kept=kept,
+        loops_tried=tried,
+        timings={"registration": t1 - t0, "loop_closure": t2 - t1, "optimization": t3 - t2},
+    )
+
+
+def is_planar_laser(seq: Sequence) -> bool:
+    """A planar laser recognised from its data: 2D scans whose reader names a laser sensor."""
+    sensor = seq.meta.get("sensor")
+    return seq.dim == 2 and isinstance(sensor, dict) and sensor.get("kind") == "laser"
