@@ -99,6 +99,10 @@ def _classical(config: RunConfig, scene: Sequence) -> dict[str, Any]:
     if pg.odometry_uncertain == "auto":
         robust = planar and consecutive == "on" and loop_global == "on"  # multiway's own rule
         out["posegraph"]["odometry_uncertain"] = "on" if robust else "off"
+    if pg.frontend == "auto":  # planar lasers: submaps, loops, GTSAM (docs/design/laser-slam.md)
+        from strep_core.registration.laser_slam import is_planar_laser
+
+        out["posegraph"]["frontend"] = "submaps" if is_planar_laser(scene) else "icp"
     return out
 
 
