@@ -71,8 +71,8 @@ def test_the_graph_survives_injected_wrong_closures(intel_window) -> None:
 
 
 def test_local_slam_bridges_a_garbage_scan_instead_of_jumping(intel_window) -> None:
-    """Scan 50 replaced by random points: it fails (low score) and is placed at the
-    constant-velocity prediction, one step from its neighbours; the rest stays registered."""
+    """Scan 50 replaced by random points: it fails (low score) and is bridged inside the motion
+    bounds (about two steps of this log) with a wide covariance; the rest stays registered."""
     frames = [f.copy() for f in intel_window.frames]
     rng = np.random.default_rng(3)
     frames[50] = rng.uniform(-8, 8, size=(180, 2))
@@ -81,7 +81,7 @@ def test_local_slam_bridges_a_garbage_scan_instead_of_jumping(intel_window) -> N
     assert matches[50].verdict == "failed"
     assert np.linalg.eigvalsh(matches[50].covariance)[0] > np.linalg.eigvalsh(matches[49].covariance)[-1]
     step = np.linalg.norm(poses[50][:2, 2] - poses[49][:2, 2])
-    assert step < 1.5, step  # a bridged step is a plausible step, never a jump
+    assert step <= matches[50].window < 3.0, (step, matches[50].window)  # within the bounds: never a jump
     assert sum(m.verdict == "failed" for m in matches) <= 3
     assert metrics.ate(poses, intel_window.poses) < 0.5
     assert sum(sm.finished for sm in submaps) >= 5

@@ -206,7 +206,10 @@ def test_the_gpus_search_reads_nothing_back_between_events(monkeypatch) -> None:
     from strep_core.samples import load_sample
 
     seq = load_sample("sim2d-small", frames="0:24")
-    cfg = RunConfig.build(method="strep", start="scratch", threads=1, optim={"iterations": 20, "event_interval": 8})
+    from strep_core.resolve import resolve
+
+    asked = RunConfig.build(method="strep", start="scratch", threads=1, optim={"iterations": 20, "event_interval": 8})
+    cfg = resolve(asked, seq).config  # the start's overlay, as a run gets it
     reads = [0]
     _brute_run(monkeypatch, seq, cfg, reads)
     # reads[i + 1]: during iteration i (events after 8, 16 and 20 iterations; a refresh at 10)
