@@ -1,5 +1,5 @@
 """Config keys: one name per setting, and the flat names of earlier versions still read
-(`strep_core._config_migrate`) from a saved config.json, ``--set`` and REST job bodies."""
+(`strep_core.config.migrate`) from a saved config.json, ``--set`` and REST job bodies."""
 
 from __future__ import annotations
 

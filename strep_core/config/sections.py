@@ -1,5 +1,5 @@
 """The sections of the run config, one per concern: model, loss, optimiser, reader options (the
-classical baselines' section is `strep_core._config_classical`). `strep_core.config` composes
+classical baselines' section is `strep_core.config.classical`). `strep_core.config` composes
 them into `RunConfig` (and re-exports them: import them from there)."""
 
 from __future__ import annotations

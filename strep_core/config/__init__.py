@@ -1,8 +1,12 @@
 """One pydantic configuration for a run, nested by concern.
 
-`RunConfig` is the body of a job request, the source of the CLI's options and the
-``config.json`` saved beside every result. Lengths given as ``None`` are derived from the
-data (see `strep_core.sequence.Sequence.scale`) so the same defaults work in pixels and metres.
+`RunConfig` (here) is the body of a job request, the source of the CLI's options and the
+``config.json`` saved beside every result. What a user sets: ``method``, ``start``/``init``,
+``frames``, ``seed``, ``device``, ``optim.iterations``, ``profile``, ``data`` (reader options),
+``from_model``/``freeze``. The advanced sections live in the package's modules: `sections`
+(model, loss, optimiser, data), `classical` (the classical baselines, nested by concern) and
+`migrate` (version-1 files' renamed keys). Lengths given as ``None`` are derived from the data
+(`strep_core.resolve`) so the same defaults work in pixels and metres.
 """
 
 from __future__ import annotations
@@ -13,7 +17,7 @@ from typing import Any, Literal
 
 from pydantic import Field, ValidationError, model_validator
 
-from strep_core._config_classical import (
+from strep_core.config.classical import (
     ClassicalConfig,
     CorrelativeConfig,
     IcpConfig,
@@ -22,8 +26,8 @@ from strep_core._config_classical import (
     PoseGraphConfig,
     ScanMatchConfig,
 )
-from strep_core._config_migrate import RENAMED, migrate
-from strep_core._config_sections import (
+from strep_core.config.migrate import RENAMED, migrate
+from strep_core.config.sections import (
     MAX_POINTS,
     DataConfig,
     LossConfig,
@@ -67,7 +71,7 @@ DeviceName = Literal["cpu", "cuda", "auto"]
 CLASSICAL_INITS = frozenset({"icp", "multiway", "kiss", "fpfh"})
 
 # The format of a saved config. A file without it is version 1 and is read through the frozen
-# table of its renamed keys (`strep_core._config_migrate`); a later rename bumps the version
+# table of its renamed keys (`strep_core.config.migrate`); a later rename bumps the version
 # and adds one upgrade step, in the same module.
 CONFIG_VERSION = 2
 

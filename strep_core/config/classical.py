@@ -14,7 +14,7 @@ from typing import Literal
 
 from pydantic import Field, field_validator
 
-from strep_core._config_sections import Section
+from strep_core.config.sections import Section
 
 
 class IcpConfig(Section):
@@ -277,7 +277,7 @@ class ClassicalConfig(Section):
     """Settings of the classical baselines (`icp`, `multiway`, `kiss`), one sub-section per concern.
 
     The flat names of version 1 (``icp_scales``, ``kiss_voxel``...) are still read from files of
-    that version (`strep_core._config_migrate`).
+    that version (`strep_core.config.migrate`).
     """
 
     icp: IcpConfig = Field(default_factory=IcpConfig, description="pairwise ICP")
