@@ -120,9 +120,6 @@ class Submap:
                 self.points = [self._cloud]  # a frozen submap keeps only its voxelised points
         return self._cloud
 
-    def centre(self) -> np.ndarray:
-        return self.cloud(1e9).mean(0) if self._cloud is None else self._cloud.mean(0)
-
 
 def derive_params(frames: list[np.ndarray], scale: float) -> LaserSlamParams:
     """Settings from the data. The grid: 0.025 of the scale (median range, so metres and pixels
