@@ -75,7 +75,7 @@ def laser_slam(
     on_loop_search: Callable[[int], None] | None = None,
 ) -> LaserSlamResult:
     """Register a planar laser sequence; scan 0 stays at ``start`` ``(3, 3)``."""
-    params = derive_params(seq.frames, seq.scale())
+    params = derive_params(seq)
     t0 = time.perf_counter()
     local, matches, submaps = local_slam(seq.frames, params, start=start, on_scan=on_scan)
     t1 = time.perf_counter()

@@ -29,7 +29,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from strep_core import geometry as g
+from strep_core.registration.params import point_spacing
 from strep_core.scanmatch import ScanMatcher, ScanMatchParams
+from strep_core.sequence import Sequence
 
 Verdict = Literal["accepted", "ambiguous", "failed"]
 
@@ -121,19 +123,16 @@ class Submap:
         return self._cloud
 
 
-def derive_params(frames: list[np.ndarray], scale: float) -> LaserSlamParams:
+def derive_params(seq: Sequence) -> LaserSlamParams:
     """Settings from the data. The grid: 0.025 of the scale (median range, so metres and pixels
     alike), finer where the scans are denser (the median spacing of neighbouring points: 361-beam
     logs; whole belgioioso 0.775 -> 0.095 m, freiburg-campus 46 -> 22 m). Every range is used (a
     corridor's far end is what fixes the slide along it: aces[0:100] 6.4 m with ranges cut at
     their 95th percentile, 0.31 m uncut). The motion windows start wide (1.5 scales, every
     heading) and shrink to what the log shows (`_Motion`). docs/design/laser-slam.md."""
-    far = max((float(np.linalg.norm(f, axis=1).max()) for f in frames if len(f)), default=scale)
-    picks = [f for f in frames[:: max(1, len(frames) // 20)][:20] if len(f) > 2]
-    gaps = np.concatenate([cKDTree(f).query(f, k=2)[0][:, 1] for f in picks]) if picks else np.zeros(0)
-    gaps = gaps[gaps > 0]
-    spacing = float(np.median(gaps)) if len(gaps) else scale
-    res = min(0.025 * scale, spacing)
+    scale = seq.scale()
+    far = max((float(np.linalg.norm(f, axis=1).max()) for f in seq.frames if len(f)), default=scale)
+    res = min(0.025 * scale, point_spacing(seq, max_frames=20))
     return LaserSlamParams(resolution=res, max_range=far, window=1.5 * scale, prior_scale=scale)
 
 
