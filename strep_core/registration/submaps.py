@@ -342,11 +342,20 @@ def _match(
     near = score_b - _turn_cost(pred, pose_b, p) >= score_a - _turn_cost(pred, pose_a, p) - p.peak_margin
     if two_peaks and score_b >= floor and near:
         verdict, pose, info, score = "ambiguous", pose_b, info_b, score_b
+    sums: list[tuple[float, float]] = []
+
+    def latest_sums() -> tuple[float, float]:
+        """Each peak's score against the submap plus against the latest scan alone (built once)."""
+        if not sums:
+            latest = ScanMatcher(recent, sm_params, center=anchor[:2, 2])
+            sums.append((latest.evaluate(points, pose_a) + score_a, latest.evaluate(points, pose_b) + score_b))
+        return sums[0]
+
     if recent is not None and score < p.weak_score * floor / p.min_score and verdict == "accepted":
         # a weak peak may alias an older part of the submap: the latest scan, which shares the
         # most of this view, must agree (docs/design/laser-slam.md, belgioioso scan 89)
-        latest = ScanMatcher(recent, sm_params, center=anchor[:2, 2])
-        if latest.evaluate(points, pose_b) + score_b > latest.evaluate(points, pose_a) + score_a:
+        sum_a, sum_b = latest_sums()
+        if sum_b > sum_a:
             verdict, pose, info, score = "ambiguous", pose_b, info_b, score_b
     rel = g.relative(anchor, pose)
     step = float(np.hypot(*rel[:2, 2]))
@@ -357,8 +366,8 @@ def _match(
     if score < floor:  # a weak peak: the latest scan picks the bridge, free for the graph
         bridge = pose_b
         if recent is not None:
-            latest = ScanMatcher(recent, sm_params, center=anchor[:2, 2])
-            if latest.evaluate(points, pose_a) + score_a > latest.evaluate(points, pose_b) + score_b:
+            sum_a, sum_b = latest_sums()
+            if sum_a > sum_b:
                 bridge = pose_a
         return Match("failed", score, bridge, wide, window)
     motion.scores = [*motion.scores, score][-p.history :]
