@@ -9,12 +9,16 @@ it. Decisions and their measurements: docs/design/warm-start.md, docs/design/fro
 from __future__ import annotations
 
 import os
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from strep_core.config import RunConfig
 from strep_core.methods.base import MethodOutput, RunContext, method
 from strep_core.sequence import Sequence
+
+if TYPE_CHECKING:
+    from strep_core.model import Variant
 
 # torch's OpenMP threads wait passively: spinning made an iteration 5x slower on a shared CPU
 # (docs/design/warm-start.md, threads). Chosen before torch loads (imported lazily below); a
@@ -24,8 +28,19 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 def _iterations(seq: Sequence, cfg: RunConfig) -> int:
     from strep_core.batching import total_steps  # (imports torch: after the line above)
+    from strep_core.windows import total_iterations, windowed
 
-    return total_steps(len(seq), cfg)
+    return total_iterations(seq, cfg) if windowed(seq, cfg) else total_steps(len(seq), cfg)
+
+
+def _run(seq: Sequence, init_poses: np.ndarray, config: RunConfig, ctx: RunContext, variant: Variant) -> MethodOutput:
+    """One learned run: by windows from scratch past one batch (`strep_core.windows`), else one optimisation."""
+    from strep_core.optimize import optimize
+    from strep_core.windows import optimize_windows, windowed
+
+    if windowed(seq, config):
+        return optimize_windows(seq, init_poses, config, ctx, variant=variant)
+    return optimize(seq, init_poses, config, ctx, variant=variant)
 
 
 @method(
@@ -36,9 +51,7 @@ def _iterations(seq: Sequence, cfg: RunConfig) -> int:
     total_iterations=_iterations,
 )
 def strep(seq: Sequence, init_poses: np.ndarray, config: RunConfig, ctx: RunContext) -> MethodOutput:
-    from strep_core.optimize import optimize
-
-    return optimize(seq, init_poses, config, ctx, variant="strep")
+    return _run(seq, init_poses, config, ctx, "strep")
 
 
 @method(
@@ -48,9 +61,7 @@ def strep(seq: Sequence, init_poses: np.ndarray, config: RunConfig, ctx: RunCont
     total_iterations=_iterations,
 )
 def strep_nolink(seq: Sequence, init_poses: np.ndarray, config: RunConfig, ctx: RunContext) -> MethodOutput:
-    from strep_core.optimize import optimize
-
-    return optimize(seq, init_poses, config, ctx, variant="strep-nolink")
+    return _run(seq, init_poses, config, ctx, "strep-nolink")
 
 
 @method(
@@ -60,6 +71,4 @@ def strep_nolink(seq: Sequence, init_poses: np.ndarray, config: RunConfig, ctx: 
     total_iterations=_iterations,
 )
 def deepmapping(seq: Sequence, init_poses: np.ndarray, config: RunConfig, ctx: RunContext) -> MethodOutput:
-    from strep_core.optimize import optimize
-
-    return optimize(seq, init_poses, config, ctx, variant="deepmapping")
+    return _run(seq, init_poses, config, ctx, "deepmapping")

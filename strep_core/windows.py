@@ -1,0 +1,168 @@
+"""From scratch past one batch: overlapping windows registered alone, joined, then refined together.
+
+The paper registers sequences of up to 256 frames from identity, and so does this project; a
+longer sequence optimised as one (batched or not) does not converge from identity (512 frames:
+214.6 -> 154.6 px batched, 219.0 px as one batch; docs/design/long-scratch.md). So a learned run
+from scratch on more frames than one batch (``optim.batch_frames``, 256 by the resolve stage):
+
+1. **windows**: the sequence is cut into windows of one batch, overlapping by `OVERLAP` frames,
+   and each is registered from identity by the paper's model exactly as a sequence of that
+   length is (its own decoder, linked latents and temporal chain; `strep_core.optimize`);
+2. **join**: each window is moved rigidly onto the frames before it by its shared frames' points
+   (each point's two world positions, one rigid fit, `metrics.align_rigid`);
+3. **refine**: one run of the same method over the whole sequence from the joined poses, in
+   batches, with the loop pairs on from the start (`REFINE`): the joins' small errors and the
+   loops between windows are what it corrects.
+
+Cost: windows x ``optim.iterations`` + the refinement, linear in frames. The window runs report
+as the whole run's progress: their poses joined as far as they go, the rest where they started.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from strep_core import geometry as g
+from strep_core import metrics
+from strep_core.batching import batch_schedule, total_steps
+from strep_core.config import RunConfig, merge
+from strep_core.events import Event, IterationEvent, pose_list
+from strep_core.methods.base import MethodOutput, RunContext
+from strep_core.sequence import Sequence
+
+if TYPE_CHECKING:
+    from strep_core.model import Variant
+
+# Frames each window shares with the one before (docs/design/long-scratch.md).
+OVERLAP = 64
+# The refinement's settings over the run's own: the joined chain is close, so the loop pairs join
+# at once, and fewer iterations than from identity (docs/design/long-scratch.md).
+REFINE: dict[str, dict[str, Any]] = {"loss": {"loop_after": 0.0}, "optim": {"iterations": 300}}
+# Points of each shared frame used by a join (strided).
+JOIN_POINTS = 256
+
+
+def windowed(seq: Sequence, config: RunConfig) -> bool:
+    """Whether a learned run of ``config`` on ``seq`` goes by windows: from scratch, longer than a batch."""
+    batch = config.optim.batch_frames
+    return config.start == "scratch" and isinstance(batch, int) and len(seq) > batch
+
+
+def windows(num_frames: int, size: int) -> list[np.ndarray]:
+    """Contiguous windows of ``size`` frames covering the sequence, each sharing `OVERLAP` with the last."""
+    return batch_schedule(num_frames, size, min(OVERLAP, size // 2))
+
+
+def refine_config(config: RunConfig) -> RunConfig:
+    """The refinement's config: the run's own, `REFINE` over it."""
+    return RunConfig.build(**merge(config.model_dump(), REFINE))
+
+
+def total_iterations(seq: Sequence, config: RunConfig) -> int:
+    """Steps of a windowed run: every window's, then the refinement's."""
+    assert isinstance(config.optim.batch_frames, int)
+    wins = windows(len(seq), config.optim.batch_frames)
+    return len(wins) * config.optim.iterations + total_steps(len(seq), refine_config(config))
+
+
+def join(poses: np.ndarray, done: np.ndarray, window: np.ndarray, est: np.ndarray, seq: Sequence) -> np.ndarray:
+    """``est`` (the window's poses, its own axes) moved rigidly onto ``poses`` by the frames of
+    ``window`` already in ``done``: one rigid fit of the shared frames' points, placed both ways."""
+    shared = np.flatnonzero(done[window])
+    if len(shared) == 0:
+        return est
+    src, dst = [], []
+    for i in shared:
+        k = window[i]
+        pts = seq.frames[k][:: max(1, len(seq.frames[k]) // JOIN_POINTS)]
+        src.append(g.apply(est[i], pts))
+        dst.append(g.apply(poses[k], pts))
+    rot, t = metrics.align_rigid(np.concatenate(src), np.concatenate(dst))
+    d = rot.shape[0]
+    move = np.eye(d + 1)
+    move[:d, :d], move[:d, d] = rot, t
+    return move[None] @ est
+
+
+@dataclass
+class _Progress:
+    """Re-emits a window run's events as the whole run's: iterations offset, poses joined."""
+
+    ctx: RunContext
+    seq: Sequence
+    total: int
+    poses: np.ndarray  # every frame's latest (joined) poses
+    done: np.ndarray  # frames joined so far
+    offset: int = 0
+    window: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+    def emit(self, event: Event) -> None:
+        if not isinstance(event, IterationEvent) or event.poses is None:
+            self.ctx.sink.emit(event)
+            return
+        est = g.pose_from_vector(np.asarray(event.poses, dtype=np.float64))
+        if len(self.window):  # a window's run: its poses joined onto the frames before it
+            cur = self.poses.copy()
+            cur[self.window] = join(self.poses, self.done, self.window, est, self.seq)
+        else:  # the refinement: the whole sequence's
+            cur = est
+        gt = self.seq.poses
+        self.ctx.sink.emit(
+            event.model_copy(
+                update={
+                    "iteration": self.offset + event.iteration,
+                    "total": self.total,
+                    "poses": pose_list(g.pose_to_vector(cur)),
+                    "ate": metrics.ate(cur, gt) if gt is not None else None,
+                }
+            )
+        )
+
+
+def optimize_windows(
+    seq: Sequence, init_poses: np.ndarray, config: RunConfig, ctx: RunContext, *, variant: Variant
+) -> MethodOutput:
+    """A learned run from scratch over more frames than one batch (see the module docstring)."""
+    from strep_core.optimize import optimize
+
+    assert isinstance(config.optim.batch_frames, int)
+    wins = windows(len(seq), config.optim.batch_frames)
+    rcfg = refine_config(config)
+    total = len(wins) * config.optim.iterations + total_steps(len(seq), rcfg)
+    progress = _Progress(ctx, seq, total, init_poses.copy(), np.zeros(len(seq), bool))
+    wctx = RunContext(sink=progress, cancel=ctx.cancel, started=ctx.started)
+    history: list[dict[str, Any]] = []
+    timings: dict[str, float] = {}
+    window_ate: list[float] = []
+    for w in wins:
+        progress.window = w
+        out = optimize(seq.select(slice(int(w[0]), int(w[-1]) + 1)), init_poses[w], config, wctx, variant=variant)
+        progress.poses[w] = join(progress.poses, progress.done, w, out.poses, seq)
+        progress.done[w] = True
+        history += [{**h, "iteration": progress.offset + h["iteration"], "ate": None} for h in out.history]
+        progress.offset += out.iterations
+        for name, value in out.timings.items():
+            timings[f"windows_{name}"] = timings.get(f"windows_{name}", 0.0) + value
+        if seq.poses is not None:
+            window_ate.append(metrics.ate(out.poses, seq.poses[w]))
+    joined = progress.poses.copy()
+    joined_ate = metrics.ate(joined, seq.poses) if seq.poses is not None else None
+    # the refinement's events: its own iterations after the windows', its poses the whole sequence's
+    progress.window = np.zeros(0, np.int64)
+    out = optimize(seq, joined, rcfg, wctx, variant=variant)
+    history += [{**h, "iteration": progress.offset + h["iteration"]} for h in out.history]
+    timings.update(out.timings)
+    extra: dict[str, float | int] = {"windows": len(wins)}
+    if joined_ate is not None:
+        extra.update(joined_ate=joined_ate, window_ate_max=max(window_ate))
+    return MethodOutput(
+        poses=out.poses,
+        iterations=progress.offset + out.iterations,
+        history=history,
+        artifacts=out.artifacts,
+        timings=timings,
+        metrics=extra,
+    )
