@@ -63,20 +63,28 @@ def build_plan(
     weight = np.minimum(1.0, window / np.maximum(span, 1)) if span_weight else np.ones(len(pairs))
     moving = np.flatnonzero(~fixed)
 
-    def t(x: np.ndarray, dtype: torch.dtype = torch.int64) -> torch.Tensor:
-        return torch.as_tensor(x, dtype=dtype, device=device)
-
+    ints = [frames, moving, frames[moving], pairs[:, 0], pairs[:, 1], (span > window).astype(np.int64)]
+    parts = torch.split(_upload(np.concatenate(ints).astype(np.int64), device), [len(x) for x in ints])
     return BatchPlan(
-        frames=t(frames),
-        moving=t(moving),
-        moving_frames=t(frames[moving]),
+        frames=parts[0],
+        moving=parts[1],
+        moving_frames=parts[2],
         has_fixed=bool(fixed.any()),
         upto=int(frames[moving[-1]]) + 1,
-        src=t(pairs[:, 0]),
-        dst=t(pairs[:, 1]),
-        spatial=t(span > window, torch.bool),
-        weight=t(weight, torch.float32),
+        src=parts[3],
+        dst=parts[4],
+        spatial=parts[5].bool(),
+        weight=_upload(weight.astype(np.float32), device),
     )
+
+
+def _upload(values: np.ndarray, device: torch.device) -> torch.Tensor:
+    """``values`` on ``device``: on a GPU from pinned memory without blocking the host (the plan's
+    indices travel as one packed copy, its weights as another: 2 copies a refresh, not 8)."""
+    host = torch.from_numpy(values)
+    if device.type != "cuda":
+        return host.to(device)
+    return host.pin_memory().to(device, non_blocking=True)
 
 
 def sample_slots(
