@@ -287,7 +287,7 @@ def test_newcomer_path_offline(server: Server, browser: Browser, tmp_path: Path)
 
     # while it runs, each row says where its job is
     stages: set[str] = set()
-    deadline = time.monotonic() + 150
+    deadline = time.monotonic() + 480  # a hang guard, not a speed target: two jobs share the cores with others
     measured = False
     while not set(now := statuses()) <= FINAL:
         assert time.monotonic() < deadline, now
