@@ -189,3 +189,32 @@ def test_the_step_bound_follows_the_steps_the_log_moved() -> None:
     for _ in range(12):
         motion.add(1.0, 0.0)
     assert motion.bounds()[0] == pytest.approx(3.0)
+
+
+def test_a_second_loop_pass_from_the_graph_reaches_a_drifted_revisit() -> None:
+    """The chain drifted 40 m by the time the robot returns: nothing is searched from the local
+    poses; from the graph's estimates (here: near the truth) the revisit is found and the closure,
+    in the submap's own frame, agrees with the truth."""
+    rng = np.random.default_rng(7)
+    world = _walls(rng)
+    k_frames = 60
+    truth = g.se2_from_xytheta(np.array([1.0, -1.0, 0.2]))
+    poses = np.stack([g.se2_from_xytheta(np.array([0.05 * k + 100.0 * (k >= 10), 0.0, 0.0])) for k in range(k_frames)])
+    frames = [_scan(world, p) for p in poses]
+    poses[-1] = g.se2_from_xytheta(np.array([40.0, 0.0, 0.0]))  # the local chain's drifted estimate
+    frames[-1] = _scan(world, truth)
+    cov = np.diag([0.02**2, 0.02**2, np.radians(0.5) ** 2])
+    matches = [Match("accepted", 0.8, p, cov) for p in poses]
+    slam = LaserSlamParams(resolution=0.05, max_range=12.0, window=3.0)
+    target = Submap(0, finished=True)
+    for k in range(10):
+        target.insert(g.apply(poses[k], frames[k]), k)
+    params = dataclasses.replace(lg.loop_params(slam, 3.0), every=1.0)
+    first, _ = lg.search_loops(frames, poses, matches, [target], slam, params)
+    estimates = poses.copy()
+    estimates[-1] = truth @ g.se2_from_xytheta(np.array([0.5, 0.3, np.radians(3.0)]))  # the graph's, close
+    second, _ = lg.search_loops(frames, poses, matches, [target], slam, params, estimates=estimates)
+    assert first == []
+    assert len(second) == 1 and (second[0].i, second[0].j) == (0, k_frames - 1)
+    off = g.relative(g.relative(poses[0], truth), second[0].transform)
+    assert np.hypot(*off[:2, 2]) < 0.1 and abs(np.arctan2(off[1, 0], off[0, 0])) < np.radians(1.0)

@@ -54,6 +54,10 @@ class LoopParams:
             are often clutter or a distorted submap and the revisit lies farther
             (freiburg-campus 25.0 -> 1.2 m on one local chain, the cost bounded per scan;
             docs/design/laser-slam.md).
+        passes: searches over the log; each after the first starts from the graph's poses.
+            Two: freiburg-campus 1.21 -> 0.42 m, but aces 0.131 -> 0.151 m, edmonton
+            0.241 -> 0.268 m and freiburg-079 185 -> 257 s (loaded), intel 38 -> 125 s: one by
+            default until the second pass is cheaper and costs no log (docs/design/laser-slam.md).
         yaw_window: headings searched around the estimate's (+-; every heading, pi, found no
             more closures on freiburg-campus at 1.5 times the cost).
     """
@@ -65,6 +69,7 @@ class LoopParams:
     min_score: float = 0.85
     candidates: int = 6
     yaw_window: float = float(np.radians(30.0))
+    passes: int = 1
 
 
 def loop_params(slam: LaserSlamParams, scale: float) -> LoopParams:
@@ -91,19 +96,30 @@ def search_loops(
     slam: LaserSlamParams,
     params: LoopParams,
     *,
+    estimates: np.ndarray | None = None,
     on_scan: Callable[[int], None] | None = None,
 ) -> tuple[list[Edge], int]:
     """Loop-closure edges (anchor scan of a submap -> scan) and the number of searches tried.
 
     ``poses`` are the local SLAM's (the submaps' frame); the uncertainty between two scans is
     the sum of the chain's translation variances between them, so a bridged failure widens it.
+    ``estimates``: poses after a graph (a second pass): the candidates are the submaps nearest
+    there and each guess is the estimated relative pose from the submap's anchor.
     """
     res = slam.resolution
     finished = [sm for sm in submaps if sm.finished]
     if not finished:
         return [], 0
     var = np.concatenate([[0.0], np.cumsum([np.trace(m.covariance[:2, :2]) for m in matches[1:]])])
+    est = poses if estimates is None else estimates
     centres = np.array([sm.cloud(res).mean(0) for sm in finished])
+    if estimates is not None:  # each centroid carried into the estimates' frame by its anchor's correction
+        centres = np.array(
+            [
+                g.apply(est[sm.anchor] @ np.linalg.inv(poses[sm.anchor]), c[None])[0]
+                for sm, c in zip(finished, centres, strict=True)
+            ]
+        )
     ends = np.array([sm.scans[-1] for sm in finished])
     tree = cKDTree(centres)
     scores = [m.score for m in matches if m.verdict == "accepted"]
@@ -119,7 +135,7 @@ def search_loops(
         last = travelled[k]
         if on_scan is not None:
             on_scan(k)
-        pos = poses[k][:2, 2]
+        pos = est[k][:2, 2]
         near = tree.query_ball_point(pos, params.max_radius + 0.5 * params.max_radius)
         best: Edge | None = None
         near = [s for s in near if ends[s] <= k - params.min_gap]
@@ -131,7 +147,8 @@ def search_loops(
             if np.linalg.norm(centres[s] - pos) > radius + params.max_radius:
                 continue
             tried += 1
-            edge = _close(frames[k], poses[k], sm, poses[sm.anchor], k, radius, slam, cache, params.yaw_window)
+            guess = poses[k] if estimates is None else poses[sm.anchor] @ g.relative(est[sm.anchor], est[k])
+            edge = _close(frames[k], guess, sm, poses[sm.anchor], k, radius, slam, cache, params.yaw_window)
             if edge is not None and edge.score >= floor and (best is None or edge.score > best.score):
                 best = edge
         if best is not None:
