@@ -14,7 +14,7 @@ from strep_core import metrics
 from strep_core.config import RunConfig
 from strep_core.registration import laser_graph as lg
 from strep_core.registration.laser_slam import is_planar_laser, laser_slam
-from strep_core.registration.submaps import derive_params, local_slam
+from strep_core.registration.submaps import LaserSlamParams, Match, Submap, derive_params, local_slam
 from strep_core.runner import run
 from strep_core.sequence import Sequence
 
@@ -120,3 +120,106 @@ def test_the_submap_front_end_is_for_planar_lasers_only(shared_data) -> None:
     from strep_core.runner import load_input
 
     assert not is_planar_laser(load_input("sample:sim2d-small"))
+
+
+def _walls(rng: np.random.Generator) -> np.ndarray:
+    """Points every 5 cm on 14 random walls in a 30 m square."""
+    segs = []
+    for _ in range(14):
+        a = rng.uniform(-15, 15, 2)
+        b = a + rng.uniform(-8, 8, 2)
+        t = np.linspace(0, 1, max(2, int(np.linalg.norm(b - a) / 0.05)))[:, None]
+        segs.append(a + t * (b - a))
+    return np.concatenate(segs)
+
+
+def _scan(world: np.ndarray, pose: np.ndarray, reach: float = 12.0) -> np.ndarray:
+    local = g.apply(np.linalg.inv(pose), world)
+    return local[np.linalg.norm(local, axis=1) < reach]
+
+
+def test_the_loop_search_reaches_past_the_nearest_submaps() -> None:
+    """A scan revisits a place seen 60 scans before, but three submaps of clutter lie nearer
+    its estimate: the two nearest alone (the search before) close nothing; the default
+    candidates find the true submap and the closure agrees with the truth."""
+    rng = np.random.default_rng(5)
+    world = _walls(rng)
+    k_frames = 60
+    truth = g.se2_from_xytheta(np.array([2.0, 1.0, 0.3]))
+    estimate = truth @ g.se2_from_xytheta(np.array([0.6, -0.4, np.radians(4.0)]))  # the chain drifted
+    # the first ten scans see the place; then the robot is away (nothing in reach) until it returns
+    poses = np.stack([g.se2_from_xytheta(np.array([0.05 * k + 100.0 * (k >= 10), 0.0, 0.0])) for k in range(k_frames)])
+    poses[-1] = estimate
+    frames = [_scan(world, p) for p in poses]
+    frames[-1] = _scan(world, truth)
+    cov = np.diag([0.02**2, 0.02**2, np.radians(0.5) ** 2])
+    matches = [Match("accepted", 0.8, p, cov) for p in poses]
+    res = 0.05
+    slam = LaserSlamParams(resolution=res, max_range=12.0, window=3.0)
+    target = Submap(0, finished=True)
+    for k in range(10):
+        target.insert(g.apply(poses[k], frames[k]), k)
+    clutter = []
+    for s in range(3):
+        sm = Submap(10 + s, finished=True)
+        sm.insert(estimate[:2, 2] + rng.normal(0, 1.0, size=(40, 2)), 10 + s)
+        clutter.append(sm)
+    params = dataclasses.replace(lg.loop_params(slam, 3.0), every=1.0)
+    before, _ = lg.search_loops(
+        frames, poses, matches, [target, *clutter], slam, dataclasses.replace(params, candidates=2)
+    )
+    loops, tried = lg.search_loops(frames, poses, matches, [target, *clutter], slam, params)
+    assert before == []
+    assert len(loops) == 1 and tried == 4
+    e = loops[0]
+    assert (e.i, e.j) == (0, k_frames - 1)
+    off = g.relative(g.relative(poses[0], truth), e.transform)
+    assert np.hypot(*off[:2, 2]) < 2 * res and abs(np.arctan2(off[1, 0], off[0, 0])) < np.radians(1.0)
+
+
+def test_the_step_bound_follows_the_steps_the_log_moved() -> None:
+    """Half the initial window is the step bound while the log has not moved (it may start by
+    turning in place); once ten steps moved it is capped at three times their 90th percentile."""
+    from strep_core.registration.submaps import _Motion
+
+    motion = _Motion(LaserSlamParams(resolution=0.1, max_range=80.0, window=19.0))
+    for _ in range(12):
+        motion.add(0.0, 0.3)
+    assert motion.bounds()[0] == pytest.approx(9.5)
+    for _ in range(12):
+        motion.add(1.0, 0.0)
+    assert motion.bounds()[0] == pytest.approx(3.0)
+
+
+def test_a_second_loop_pass_from_the_graph_reaches_a_drifted_revisit() -> None:
+    """The chain drifted 40 m by the time the robot returns: nothing is searched from the local
+    poses; from the graph's estimates (here: near the truth) the revisit is found and the closure,
+    in the submap's own frame, agrees with the truth."""
+    rng = np.random.default_rng(7)
+    world = _walls(rng)
+    k_frames = 60
+    truth = g.se2_from_xytheta(np.array([1.0, -1.0, 0.2]))
+    poses = np.stack([g.se2_from_xytheta(np.array([0.05 * k + 100.0 * (k >= 10), 0.0, 0.0])) for k in range(k_frames)])
+    frames = [_scan(world, p) for p in poses]
+    poses[-1] = g.se2_from_xytheta(np.array([40.0, 0.0, 0.0]))  # the local chain's drifted estimate
+    frames[-1] = _scan(world, truth)
+    cov = np.diag([0.02**2, 0.02**2, np.radians(0.5) ** 2])
+    matches = [Match("accepted", 0.8, p, cov) for p in poses]
+    slam = LaserSlamParams(resolution=0.05, max_range=12.0, window=3.0)
+    target = Submap(0, finished=True)
+    for k in range(10):
+        target.insert(g.apply(poses[k], frames[k]), k)
+    params = dataclasses.replace(lg.loop_params(slam, 3.0), every=1.0)
+    searched: dict = {}
+    first, _ = lg.search_loops(frames, poses, matches, [target], slam, params, searched=searched)
+    estimates = poses.copy()
+    estimates[-1] = truth @ g.se2_from_xytheta(np.array([0.5, 0.3, np.radians(3.0)]))  # the graph's, close
+    second, tried = lg.search_loops(
+        frames, poses, matches, [target], slam, params, estimates=estimates, searched=searched
+    )
+    # a pair whose guess has not moved by half the window is not searched again
+    _, again = lg.search_loops(frames, poses, matches, [target], slam, params, estimates=estimates, searched=searched)
+    assert first == [] and again == 0
+    assert len(second) == 1 and tried == 1 and (second[0].i, second[0].j) == (0, k_frames - 1)
+    off = g.relative(g.relative(poses[0], truth), second[0].transform)
+    assert np.hypot(*off[:2, 2]) < 0.1 and abs(np.arctan2(off[1, 0], off[0, 0])) < np.radians(1.0)
