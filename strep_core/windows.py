@@ -9,13 +9,15 @@ from scratch on more frames than one batch (``optim.batch_frames``, 256 by the r
    and each is registered from identity by the paper's model exactly as a sequence of that
    length is (its own decoder, linked latents and temporal chain; `strep_core.optimize`);
 2. **join**: each window is moved rigidly onto the frames before it by its shared frames' points
-   (each point's two world positions, one rigid fit, `metrics.align_rigid`);
+   (each point's two world positions, one rigid fit, `metrics.align_rigid`), then held by a
+   trimmed rigid ICP to every frame joined so far (`join_on_map`), so a revisit counts too;
 3. **refine**: one run of the same method over the whole sequence from the joined poses, in
    batches, with the loop pairs on from the start (`REFINE`): the joins' small errors and the
    loops between windows are what it corrects.
 
 Cost: windows x ``optim.iterations`` + the refinement, linear in frames. The window runs report
-as the whole run's progress: their poses joined as far as they go, the rest where they started.
+as the whole run's progress: their poses joined as far as they go (the live view by
+the shared frames alone), the rest where they started.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from strep_core import geometry as g
 from strep_core import metrics
@@ -45,6 +48,9 @@ OVERLAP = 128
 REFINE: dict[str, dict[str, Any]] = {"loss": {"loop_after": 0.0}, "optim": {"iterations": 300}}
 # Points of each shared frame used by a join (strided).
 JOIN_POINTS = 256
+# The map join's ICP: iterations, and the share of the window's closest matches it fits.
+MAP_ICP_ITERATIONS = 20
+MAP_ICP_KEEP = 0.8
 
 
 def windowed(seq: Sequence, config: RunConfig) -> bool:
@@ -70,23 +76,44 @@ def total_iterations(seq: Sequence, config: RunConfig) -> int:
     return len(wins) * config.optim.iterations + total_steps(len(seq), refine_config(config))
 
 
+def _rigid(rot: np.ndarray, t: np.ndarray) -> np.ndarray:
+    d = rot.shape[0]
+    move = np.eye(d + 1)
+    move[:d, :d], move[:d, d] = rot, t
+    return move
+
+
+def _points(seq: Sequence, k: int) -> np.ndarray:
+    return seq.frames[k][:: max(1, len(seq.frames[k]) // JOIN_POINTS)]
+
+
 def join(poses: np.ndarray, done: np.ndarray, window: np.ndarray, est: np.ndarray, seq: Sequence) -> np.ndarray:
     """``est`` (the window's poses, its own axes) moved rigidly onto ``poses`` by the frames of
     ``window`` already in ``done``: one rigid fit of the shared frames' points, placed both ways."""
     shared = np.flatnonzero(done[window])
     if len(shared) == 0:
         return est
-    src, dst = [], []
-    for i in shared:
-        k = window[i]
-        pts = seq.frames[k][:: max(1, len(seq.frames[k]) // JOIN_POINTS)]
-        src.append(g.apply(est[i], pts))
-        dst.append(g.apply(poses[k], pts))
-    rot, t = metrics.align_rigid(np.concatenate(src), np.concatenate(dst))
-    d = rot.shape[0]
-    move = np.eye(d + 1)
-    move[:d, :d], move[:d, d] = rot, t
-    return move[None] @ est
+    src = [g.apply(est[i], _points(seq, window[i])) for i in shared]
+    dst = [g.apply(poses[window[i]], _points(seq, window[i])) for i in shared]
+    return _rigid(*metrics.align_rigid(np.concatenate(src), np.concatenate(dst)))[None] @ est
+
+
+def join_on_map(poses: np.ndarray, done: np.ndarray, window: np.ndarray, est: np.ndarray, seq: Sequence) -> np.ndarray:
+    """`join`, then a trimmed rigid ICP of the whole window's points against every frame joined so
+    far: a window that revisits an earlier part of the map is held to it, not only to its overlap
+    (docs/design/long-scratch.md)."""
+    est = join(poses, done, window, est, seq)
+    before = np.flatnonzero(done)
+    if len(before) == 0:
+        return est
+    tree = cKDTree(np.concatenate([g.apply(poses[k], _points(seq, k)) for k in before]))
+    local = [_points(seq, k) for k in window]
+    for _ in range(MAP_ICP_ITERATIONS):
+        src = np.concatenate([g.apply(est[i], p) for i, p in enumerate(local)])
+        dist, idx = tree.query(src)
+        keep = dist <= np.quantile(dist, MAP_ICP_KEEP)
+        est = _rigid(*metrics.align_rigid(src[keep], tree.data[idx[keep]]))[None] @ est
+    return est
 
 
 @dataclass
@@ -142,7 +169,7 @@ def optimize_windows(
     for w in wins:
         progress.window = w
         out = optimize(seq.select(slice(int(w[0]), int(w[-1]) + 1)), init_poses[w], config, wctx, variant=variant)
-        progress.poses[w] = join(progress.poses, progress.done, w, out.poses, seq)
+        progress.poses[w] = join_on_map(progress.poses, progress.done, w, out.poses, seq)
         progress.done[w] = True
         history += [{**h, "iteration": progress.offset + h["iteration"], "ate": None} for h in out.history]
         progress.offset += out.iterations

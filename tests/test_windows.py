@@ -16,7 +16,7 @@ from strep_core.methods import get
 from strep_core.resolve import resolve
 from strep_core.runner import run
 from strep_core.sim.lidar2d import simulate_2d
-from strep_core.windows import OVERLAP, join, windowed, windows
+from strep_core.windows import OVERLAP, join, join_on_map, windowed, windows
 
 
 @pytest.mark.parametrize("frames", [257, 512, 1000, 2048])
@@ -43,6 +43,21 @@ def test_join_moves_a_window_onto_the_frames_before_it() -> None:
     np.testing.assert_allclose(joined, gt[window], atol=1e-6)
     # nothing shared: the window stays where it was
     np.testing.assert_allclose(join(gt, np.zeros(40, bool), window, est, seq), est)
+
+
+def test_a_window_is_held_to_the_map_it_revisits_not_only_to_its_overlap() -> None:
+    seq = simulate_2d(5, frames=60)
+    gt = seq.poses
+    done = np.zeros(60, bool)
+    done[:30] = True
+    window = np.arange(30, 60)  # shares no frame: the overlap fit has nothing to go on
+    off = g.se2_from_xytheta(np.array([2.0, -1.5, np.radians(1.0)]))
+    est = off[None] @ gt[window]
+    np.testing.assert_allclose(join(gt, done, window, est, seq), est)
+    placed = join_on_map(gt, done, window, est, seq)
+    before = np.linalg.norm(est[:, :2, 2] - gt[window, :2, 2], axis=1).mean()
+    after = np.linalg.norm(placed[:, :2, 2] - gt[window, :2, 2], axis=1).mean()
+    assert before > 1.5 and after < 0.1 * before
 
 
 def test_only_runs_from_scratch_longer_than_a_batch_go_by_windows() -> None:
