@@ -93,8 +93,9 @@ def join(poses: np.ndarray, done: np.ndarray, window: np.ndarray, est: np.ndarra
     shared = np.flatnonzero(done[window])
     if len(shared) == 0:
         return est
-    src = [g.apply(est[i], _points(seq, window[i])) for i in shared]
-    dst = [g.apply(poses[window[i]], _points(seq, window[i])) for i in shared]
+    pts = [_points(seq, window[i]) for i in shared]
+    src = [g.apply(est[i], p) for i, p in zip(shared, pts, strict=True)]
+    dst = [g.apply(poses[window[i]], p) for i, p in zip(shared, pts, strict=True)]
     return _rigid(*metrics.align_rigid(np.concatenate(src), np.concatenate(dst)))[None] @ est
 
 
@@ -160,8 +161,7 @@ def optimize_windows(
     assert isinstance(config.optim.batch_frames, int)
     wins = windows(len(seq), config.optim.batch_frames)
     rcfg = refine_config(config)
-    total = len(wins) * config.optim.iterations + total_steps(len(seq), rcfg)
-    progress = _Progress(ctx, seq, total, init_poses.copy(), np.zeros(len(seq), bool))
+    progress = _Progress(ctx, seq, total_iterations(seq, config), init_poses.copy(), np.zeros(len(seq), bool))
     wctx = RunContext(sink=progress, cancel=ctx.cancel, started=ctx.started)
     history: list[dict[str, Any]] = []
     timings: dict[str, float] = {}
