@@ -5,7 +5,7 @@ with every default (`strep run --start scratch`), one process per run, ``--jobs`
 Rows are appended to ``OUT/rows.jsonl`` as they finish (an interrupted run resumes); at the end
 it prints a table (ATE per frames and method, time per frame) and writes ``OUT/long.json``.
 For a windowed run (`strep_core.windows`) the rows also hold the joined poses' ATE before the
-refinement and the worst window's own ATE.
+refinement, after the loops across windows (`strep_core.window_graph`) and the worst window's own ATE.
 
     PYTHONPATH=. python benchmarks/long_scratch.py --out runs/long --frames 512 1024 --seeds 0 1 2 3 4
     PYTHONPATH=. python benchmarks/long_scratch.py --out runs/long --frames 256 --methods strep strep-nolink
@@ -34,7 +34,7 @@ def one(frames: int, seed: int, method: str, threads: int, overrides: dict[str, 
     t0 = time.perf_counter()
     res = run(seq, RunConfig.model_validate(cfg))
     m = res.metrics
-    keys = ("ate", "initial_ate", "joined_ate", "window_ate_max", "windows", "iterations")
+    keys = ("ate", "initial_ate", "joined_ate", "graph_ate", "window_ate_max", "windows", "window_loops", "iterations")
     row: dict[str, Any] = {"frames": frames, "seed": seed, "method": method, "device": res.config.device}
     row.update({k: m.get(k) for k in keys})
     row["wall_seconds"] = time.perf_counter() - t0
@@ -54,18 +54,22 @@ def _set(text: str) -> dict[str, Any]:
 
 def table(rows: list[dict[str, Any]]) -> str:
     lines = [
-        "| frames | method | runs | ATE mean | ATE max | joined mean | s / frame |",
-        "|---|---|---|---|---|---|---|",
+        "| frames | method | runs | ATE mean | ATE max | joined mean | graph mean | s / frame |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for (frames, method), group in sorted(_groups(rows).items()):
         ate = np.array([r["ate"] for r in group], float)
-        joined = [r["joined_ate"] for r in group if r.get("joined_ate") is not None]
         per = np.mean([r["wall_seconds"] / frames for r in group])
-        joined_text = f"{np.mean(joined):.2f}" if joined else "-"
+        stage = " | ".join(_mean(group, key) for key in ("joined_ate", "graph_ate"))
         lines.append(
-            f"| {frames} | {method} | {len(group)} | {ate.mean():.2f} | {ate.max():.2f} | {joined_text} | {per:.3f} |"
+            f"| {frames} | {method} | {len(group)} | {ate.mean():.2f} | {ate.max():.2f} | {stage} | {per:.3f} |"
         )
     return "\n".join(lines)
+
+
+def _mean(group: list[dict[str, Any]], key: str) -> str:
+    values = [r[key] for r in group if r.get(key) is not None]
+    return f"{np.mean(values):.2f}" if values else "-"
 
 
 def _groups(rows: list[dict[str, Any]]) -> dict[tuple[int, str], list[dict[str, Any]]]:
@@ -111,7 +115,7 @@ def main() -> None:
                 fh.write(json.dumps(row) + "\n")
             print(
                 f"{row['frames']} s{row['seed']} {row['method']}: ATE {row['ate']:.2f} "
-                f"(joined {row.get('joined_ate')}) in {row['wall_seconds']:.0f} s",
+                f"(joined {row.get('joined_ate')}, graph {row.get('graph_ate')}) in {row['wall_seconds']:.0f} s",
                 flush=True,
             )
     print(table(rows))

@@ -11,9 +11,11 @@ from scratch on more frames than one batch (``optim.batch_frames``, 256 by the r
 2. **join**: each window is moved rigidly onto the frames before it by its shared frames' points
    (each point's two world positions, one rigid fit, `metrics.align_rigid`), then held by a
    trimmed rigid ICP to every frame joined so far (`join_on_map`), so a revisit counts too;
-3. **refine**: one run of the same method over the whole sequence from the joined poses, in
-   batches, with the loop pairs on from the start (`REFINE`): the joins' small errors and the
-   loops between windows are what it corrects.
+3. **loops** (planar sequences): the windows' chain and its revisits across windows closed as one
+   pose graph (`strep_core.window_graph`): a bent window's error no longer rides on through every
+   later join;
+4. **refine**: one run of the same method over the whole sequence from those poses, in batches,
+   with the loop pairs on from the start (`REFINE`): what is left within the Chamfer's reach.
 
 Cost: windows x ``optim.iterations`` + the refinement, linear in frames. The window runs report
 as the whole run's progress: their poses joined as far as they go (the live view by
@@ -35,6 +37,7 @@ from strep_core.config import RunConfig, merge
 from strep_core.events import Event, IterationEvent, pose_list
 from strep_core.methods.base import MethodOutput, RunContext
 from strep_core.sequence import Sequence
+from strep_core.window_graph import close_loops
 
 if TYPE_CHECKING:
     from strep_core.model import Variant
@@ -166,9 +169,11 @@ def optimize_windows(
     history: list[dict[str, Any]] = []
     timings: dict[str, float] = {}
     window_ate: list[float] = []
+    ests: list[np.ndarray] = []
     for w in wins:
         progress.window = w
         out = optimize(seq.select(slice(int(w[0]), int(w[-1]) + 1)), init_poses[w], config, wctx, variant=variant)
+        ests.append(out.poses)
         progress.poses[w] = join_on_map(progress.poses, progress.done, w, out.poses, seq)
         progress.done[w] = True
         history += [{**h, "iteration": progress.offset + h["iteration"], "ate": None} for h in out.history]
@@ -178,15 +183,19 @@ def optimize_windows(
         if seq.poses is not None:
             window_ate.append(metrics.ate(out.poses, seq.poses[w]))
     joined = progress.poses.copy()
-    joined_ate = metrics.ate(joined, seq.poses) if seq.poses is not None else None
+    extra: dict[str, float | int] = {"windows": len(wins)}
+    if seq.poses is not None:
+        extra.update(joined_ate=metrics.ate(joined, seq.poses), window_ate_max=max(window_ate))
+    if seq.dim == 2:
+        joined, report = close_loops(seq.frames, wins, ests, joined)
+        extra.update(window_loops=report.loops, window_loop_inliers=report.inliers)
+        if seq.poses is not None:
+            extra["graph_ate"] = metrics.ate(joined, seq.poses)
     # the refinement's events: its own iterations after the windows', its poses the whole sequence's
     progress.window = np.zeros(0, np.int64)
     out = optimize(seq, joined, rcfg, wctx, variant=variant)
     history += [{**h, "iteration": progress.offset + h["iteration"]} for h in out.history]
     timings.update(out.timings)
-    extra: dict[str, float | int] = {"windows": len(wins)}
-    if joined_ate is not None:
-        extra.update(joined_ate=joined_ate, window_ate_max=max(window_ate))
     return MethodOutput(
         poses=out.poses,
         iterations=progress.offset + out.iterations,

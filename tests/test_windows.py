@@ -16,6 +16,7 @@ from strep_core.methods import get
 from strep_core.resolve import resolve
 from strep_core.runner import run
 from strep_core.sim.lidar2d import simulate_2d
+from strep_core.window_graph import chain, close_loops
 from strep_core.windows import OVERLAP, join, join_on_map, windowed, windows
 
 
@@ -91,3 +92,49 @@ def test_a_windowed_run_registers_and_reports_as_one_run() -> None:
     # registered: far below identity, and the refinement ends at or below the joined windows
     assert res.metrics["ate"] < 0.25 * metrics.ate(np.repeat(np.eye(3)[None], 80, 0), seq.poses)
     assert res.metrics["ate"] <= res.metrics["joined_ate"] * 1.05
+
+
+def test_loops_across_windows_undo_a_window_bent_between_revisits() -> None:
+    seq = simulate_2d(0, frames=640)  # revisits its start from about frame 200 on
+    gt = seq.poses
+    rng = np.random.default_rng(0)
+    wins = windows(640, 256)
+    ests = []
+    for n, w in enumerate(wins):  # each window's own chain: the truth, noisy, the second bent
+        bend = np.radians(0.03) if n == 1 else 0.0
+        est = [np.eye(3)]
+        for a, b in itertools.pairwise(w):
+            noise = g.se2_from_xytheta(np.array([*rng.normal(0, 0.03, 2), bend + rng.normal(0, np.radians(0.03))]))
+            est.append(est[-1] @ g.relative(gt[a], gt[b]) @ noise)
+        ests.append(np.stack(est))
+    joined = np.repeat(np.eye(3)[None], 640, 0)
+    done = np.zeros(640, bool)
+    for w, est in zip(wins, ests, strict=True):
+        joined[w] = join_on_map(joined, done, w, est, seq)
+        done[w] = True
+    closed, report = close_loops(seq.frames, wins, ests, joined)
+    before, after = metrics.ate(joined, gt), metrics.ate(closed, gt)
+    assert before > 3.0  # the bend carried on by the joins (6.0 px here)
+    assert after < 0.15 * before  # 0.22 px here
+    assert 0 < report.inliers <= report.loops <= report.tried
+
+
+def test_the_chain_takes_each_pair_from_the_window_where_it_is_most_central() -> None:
+    gt = simulate_2d(1, frames=300).poses
+    wins = windows(300, 256)
+    assert len(wins) == 2 and wins[1][0] == 44  # 212 frames shared
+    rng = np.random.default_rng(1)
+    ests = [gt[w] @ g.se2_from_xytheta(rng.normal(0, 0.1, (len(w), 3))) for w in wins]  # two different guesses
+    rels, spread = chain(wins, ests)
+    assert len(rels) == 299
+
+    def source(k: int) -> int:
+        for n, (w, est) in enumerate(zip(wins, ests, strict=True)):
+            a = k - int(w[0])
+            if 0 <= a < len(w) - 1 and np.allclose(rels[k], g.relative(est[a], est[a + 1])):
+                return n
+        return -1
+
+    # window 0 up to the middle of the shared frames, where it is as central as window 1, then window 1
+    assert [source(k) for k in range(299)] == [0] * 150 + [1] * 149
+    assert spread.shape == (3,) and np.all(spread > 0.05)  # the two windows disagree by about 0.1 a pair
