@@ -71,7 +71,8 @@ def main() -> None:
         return
     rows = []
     print(
-        f"{'log':<18} {'window':<8} {'scans':>5} {'ATE m':>7} {'s':>6} {'ms/scan':>7} {'MB':>5} {'fail':>4} {'amb':>4}"
+        f"{'log':<18} {'window':<8} {'scans':>5} {'ATE m':>7} {'s':>6} {'cpu s':>6} {'ms/scan':>7} {'MB':>5}"
+        f" {'fail':>4} {'amb':>4} {'loops':>5}"
     )
     for log in args.logs:
         for w in args.windows:
@@ -84,8 +85,9 @@ def main() -> None:
             r = json.loads(out.stdout.strip().splitlines()[-1])
             rows.append(r)
             print(
-                f"{log:<18} {w:<8} {r['scans']:>5} {r['ate']:>7.3f} {r['wall_seconds']:>6.1f} {r['ms_per_scan']:>7.1f}"
-                f" {r['peak_mb']:>5} {r['failed']!s:>4} {r['ambiguous']!s:>4}",
+                f"{log:<18} {w:<8} {r['scans']:>5} {r['ate']:>7.3f} {r['wall_seconds']:>6.1f} {r['cpu_seconds']:>6.1f}"
+                f" {r['ms_per_scan']:>7.1f} {r['peak_mb']:>5} {r['failed']!s:>4} {r['ambiguous']!s:>4}"
+                f" {r['loops_kept']!s:>5}",
                 flush=True,
             )
     if args.out:

@@ -138,8 +138,13 @@ class ScanMatcher:
 
     # ---- grids
 
-    def _build(self, src_cells: int) -> None:
-        """The field and its pooled grids for sources reaching ``src_cells`` cells."""
+    def _build(self, src_cells: int, *, pooled: bool = True) -> None:
+        """The field for sources reaching ``src_cells`` cells, and (``pooled``) its pooled grids.
+
+        Only the target's block of the grid (its cells plus the field's and the pooling's
+        reach) is computed; the rest is zero and stays untouched: the grids span the source's
+        reach around the centre, far more than a submap covers (freiburg-079: 3,400 cells a
+        side against about 1,400 x 700 of target; docs/design/laser-slam.md)."""
         p, res = self.params, self.params.resolution
         sig = p.field_sigma / res
         rad = int(np.ceil(3 * sig))
@@ -152,36 +157,55 @@ class ScanMatcher:
         ok = (cells >= -rad).all(1) & (cells < size + rad).all(1)
         cells = cells[ok]
         field = np.zeros((size, size), dtype=np.uint8)
+        self._block: tuple[np.ndarray, np.ndarray] | None = None
         if len(cells):
             lo = np.maximum(cells.min(0) - rad, 0)
             hi = np.minimum(cells.max(0) + rad + 1, size)
-            occ = np.zeros(tuple(hi - lo), dtype=np.uint8)
-            c = cells - lo
-            inside = (c >= 0).all(1) & (c < hi - lo).all(1)
-            occ[c[inside, 0], c[inside, 1]] = _Q
+            c = cells[((cells >= lo) & (cells < hi)).all(1)]
+            key = np.unique(c[:, 0] * size + c[:, 1])
+            c = np.column_stack([key // size, key % size])
+            # the separable max-product (rows, then columns, each truncated to uint8) of an
+            # occupancy is, cell by cell, the max of one stamp per occupied cell: the same numbers
             k = np.exp(-0.5 * (np.arange(-rad, rad + 1) / sig) ** 2)
-            for axis in (0, 1):  # max-product with a separable Gaussian is separable
-                out = occ.copy()
-                n = occ.shape[axis]
-                for s, ks in zip(range(-rad, rad + 1), k, strict=True):
-                    if s == 0 or abs(s) >= n:
-                        continue
-                    src = [slice(None), slice(None)]
-                    dst = [slice(None), slice(None)]
-                    src[axis] = slice(max(0, s), n + min(0, s))
-                    dst[axis] = slice(max(0, -s), n - max(0, s))
-                    shifted = (occ[tuple(src)].astype(np.float32) * ks).astype(np.uint8)
-                    np.maximum(out[tuple(dst)], shifted, out=out[tuple(dst)])
-                occ = out
-            field[lo[0] : hi[0], lo[1] : hi[1]] = occ
+            luts = [(np.arange(_Q + 1, dtype=np.float32) * ks).astype(np.uint8) for ks in k]
+            stamp = np.array([[lut_t[lut_s[_Q]] for lut_t in luts] for lut_s in luts], dtype=np.uint8)
+            d = np.arange(-rad, rad + 1)
+            if (c >= rad).all() and (c < size - rad).all():  # every stamp inside the grid
+                flat = (key[:, None] + (d[:, None] * size + d[None, :]).ravel()[None, :]).ravel()
+                np.maximum.at(field.ravel(), flat, np.broadcast_to(stamp.ravel(), (len(key), stamp.size)).ravel())
+            else:
+                rows = (c[:, 0, None, None] + d[None, :, None]) + np.zeros((1, 1, len(d)), np.int64)
+                cols = (c[:, 1, None, None] + d[None, None, :]) + np.zeros((1, len(d), 1), np.int64)
+                vals = np.broadcast_to(stamp, rows.shape)
+                ok = (rows >= 0) & (rows < size) & (cols >= 0) & (cols < size)
+                np.maximum.at(field.ravel(), rows[ok] * size + cols[ok], vals[ok])
+            self._block = (field[lo[0] : hi[0], lo[1] : hi[1]], lo)
         self.grids = [field]
-        for L in range(1, self.depth + 1):
-            lo_, hi_ = -self.dil[L], (1 << L) - 1 + self.dil[L]
-            pooled = _sliding_max(_sliding_max(field, lo_, hi_, 0), lo_, hi_, 1)
-            self.grids.append(pooled)
-        self.flat = [gr.ravel() for gr in self.grids]
+        self.flat = [field.ravel()]
         self.size = size
         self.src_cells = src_cells
+        if pooled:
+            self._pool()
+
+    def _pool(self) -> None:
+        """The max-pooled grids of every depth, computed over the target's block only: a pooled
+        cell is nonzero only where its box, widened by the dilation, reaches the block."""
+        size = self.size
+        for L in range(len(self.grids), self.depth + 1):
+            lo_, hi_ = -self.dil[L], (1 << L) - 1 + self.dil[L]
+            pooled = np.zeros((size, size), dtype=np.uint8)
+            if self._block is not None:
+                occ, lo = self._block
+                # rows lo - hi_ .. lo + n - 1 - lo_ of the pooled grid read the block
+                padded = np.pad(occ, ((hi_, -lo_), (hi_, -lo_)))
+                block = _sliding_max(_sliding_max(padded, lo_, hi_, 0), lo_, hi_, 1)
+                at = lo - hi_
+                a = np.maximum(at, 0)
+                b = np.minimum(at + np.array(block.shape), size)
+                if (b > a).all():
+                    pooled[a[0] : b[0], a[1] : b[1]] = block[a[0] - at[0] : b[0] - at[0], a[1] - at[1] : b[1] - at[1]]
+            self.grids.append(pooled)
+            self.flat.append(pooled.ravel())
 
     def _yaw_group(self, L: int) -> int:
         """Yaws per node at depth L: the group doubles with the box from depth 2 on."""
@@ -213,6 +237,8 @@ class ScanMatcher:
         src_cells = int(np.ceil(np.linalg.norm(src, axis=1).max() / res)) + 1
         if not self._grids_ready(src_cells):
             self._build(src_cells)
+        elif len(self.grids) <= self.depth:
+            self._pool()
         n_pts = len(src)
         yaw0 = float(np.arctan2(guess[1, 0], guess[0, 0]))
         yaws = yaw0 + p.yaw_step * (np.arange(self.n_yaw) - self.n_yaw // 2)
@@ -324,8 +350,8 @@ class ScanMatcher:
         if len(src) < 3:
             return 0.0
         src = _subsample(src, 2 * res, p.max_points)
-        if not hasattr(self, "grids"):
-            self._build(int(np.ceil(np.linalg.norm(src, axis=1).max() / res)) + 1)
+        if not hasattr(self, "grids"):  # the finest field only: the pooled grids wait for `match`
+            self._build(int(np.ceil(np.linalg.norm(src, axis=1).max() / res)) + 1, pooled=False)
         pose = np.asarray(pose, dtype=np.float64)
         c = np.rint((src @ pose[:2, :2].T + pose[:2, 2] - self.center) / res).astype(np.int64) + self.half
         ok = ((c >= 0) & (c < self.size)).all(1)

@@ -144,6 +144,25 @@ def test_aces_reads_440_scans_and_drops_its_50_m_sentinel(shared_data: Path) -> 
     assert np.percentile(meds, 90) < 0.09  # measured 0.063 m
 
 
+def test_acapulco_drops_its_51_15_m_code_below_its_largest_reading(shared_data: Path) -> None:
+    """The no-return code need not be the largest reading: acapulco's largest is 51.25 m (a
+    few), 51.15 m makes 6 % of its readings and 50.0 m (another code) 0.5 %."""
+    seq = read_carmen(shared_data / "carmen" / "acapulco-corrected.log.gz", frames="440:450")
+    assert seq.meta["max_range_rule"] == "sentinel" and seq.meta["max_range"] == 50.0
+    assert max(np.linalg.norm(f, axis=1).max() for f in seq.frames) < 50.0
+
+
+def test_carmen_code_repeated_below_a_stray_maximum(tmp_path: Path) -> None:
+    lines = [_flaser([1.0 + 0.1 * i, 2.0 + 0.1 * i, 8.0, 8.0, 3.0], (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)) for i in range(9)]
+    lines.append(_flaser([1.0, 2.0, 8.2, 8.0, 3.0], (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)))
+    log = tmp_path / "codes.log.gz"
+    log.write_bytes(gzip.compress(("\n".join(lines) + "\n").encode()))
+    seq = read_carmen(log)
+    # 8.0 repeats within 5 % of the largest reading (8.2, once): both are dropped
+    assert seq.meta["max_range"] == 8.0 and seq.meta["max_range_rule"] == "sentinel"
+    assert all(len(f) == 3 for f in seq.frames)
+
+
 def test_carmen_selection_keeps_original_indices(shared_data: Path, intel: Sequence) -> None:
     sel = load_sequence(shared_data / "carmen" / "intel-corrected.log.gz", frames="300:400:2")
     assert sel.indices.tolist() == list(range(300, 400, 2))

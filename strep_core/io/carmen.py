@@ -14,9 +14,12 @@ Only ``FLASER`` lines are read::
 
 Invalid ranges (no return) are dropped: ``r <= 0``, non-finite, and ``r >= limit`` where
 ``limit`` is ``max_range`` when given; otherwise ``limit = min(80 m, sentinel)``, with
-``sentinel`` the log's largest reading when that exact value repeats in at least 0.1 % of all
-readings (a saturated "no return" code, e.g. 81.83 in intel, 50.00 in aces: real ranges vary
-continuously and do not pile up on one value).
+``sentinel`` the smallest reading within 5 % of the log's largest whose exact value repeats in
+at least 0.1 % of all readings (a saturated "no return" code, e.g. 81.83 in intel, 50.00 in
+aces, 51.15 in acapulco and edmonton, 51.06 in infinite-corridor: real ranges vary
+continuously and do not pile up on one value). The code need not be the largest reading:
+acapulco's largest is 51.25 (a few), its 51.15 makes 6 % of its readings, and an arc of them
+at the same range in every scan holds the matcher at zero motion (docs/design/laser-slam.md).
 """
 
 from __future__ import annotations
@@ -37,7 +40,8 @@ from strep_core.sequence import FrameSelection, Sequence
 __all__ = ["DEFAULT_MAX_RANGE", "SENTINEL_SHARE", "read_carmen"]
 
 DEFAULT_MAX_RANGE = 80.0  # metres: SICK LMS maximum; readings at or beyond mean no return
-SENTINEL_SHARE = 1e-3  # a log maximum repeated in >= this share of readings is a no-return code
+SENTINEL_SHARE = 1e-3  # a top reading repeated in >= this share of readings is a no-return code
+SENTINEL_TOP = 0.95  # no-return codes sit within 5 % of the log's largest reading
 MAX_LINE_CHARS = 1 << 20  # a FLASER line of thousands of beams is some 10 kB
 
 
@@ -125,9 +129,11 @@ def read_carmen(
         limit, rule = DEFAULT_MAX_RANGE, "default"
         finite = all_ranges[np.isfinite(all_ranges)]
         if finite.size:
-            top = float(finite.max())
-            if np.count_nonzero(finite == top) >= max(2, SENTINEL_SHARE * finite.size) and top < limit:
-                limit, rule = top, "sentinel"
+            high = finite[finite >= SENTINEL_TOP * float(finite.max())]
+            values, counts = np.unique(high, return_counts=True)
+            codes = values[counts >= max(2, SENTINEL_SHARE * finite.size)]
+            if codes.size and float(codes.min()) < limit:
+                limit, rule = float(codes.min()), "sentinel"
 
     sel = FrameSelection.parse(frames).keep(len(scans))
     pts, gt, odom = [], [], []
