@@ -57,25 +57,38 @@ class GraphReport:
     inliers: int
 
 
-def _points(frame: np.ndarray) -> np.ndarray:
+def strided(frame: np.ndarray) -> np.ndarray:
+    """A frame's points thinned by a stride to about `POINTS` (the joins and the loops use these)."""
     return frame[:: max(1, len(frame) // POINTS)]
 
 
+def rigid(rot: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The homogeneous motion of a rotation ``(D, D)`` and a translation ``(D,)``."""
+    d = rot.shape[0]
+    move = np.eye(d + 1)
+    move[:d, :d], move[:d, d] = rot, t
+    return move
+
+
+def trimmed_icp(src: np.ndarray, tree: cKDTree, guess: np.ndarray, iterations: int, keep: float) -> np.ndarray:
+    """Point-to-point ICP of ``src`` (its own frame, any dimension) onto ``tree``'s points from
+    ``guess``, each rigid fit on the ``keep`` share of closest matches; returns the pose."""
+    pose = guess.copy()
+    for _ in range(iterations):
+        moved = g.apply(pose, src)
+        dist, idx = tree.query(moved)
+        kept = dist <= np.quantile(dist, keep)
+        pose = rigid(*metrics.align_rigid(moved[kept], tree.data[idx[kept]])) @ pose
+    return pose
+
+
 def icp(src: np.ndarray, tree: cKDTree, guess: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
-    """Trimmed point-to-point ICP of ``src`` (its own frame) onto ``tree``'s points from ``guess``.
+    """`trimmed_icp` of a planar frame ``src`` onto ``tree`` from ``guess``.
 
     Returns the pose, the mean residual of the kept matches and the fit's normal matrix in the
     tangent of a right perturbation, ``(x, y, theta)`` (``pose @ exp(xi)``).
     """
-    pose = guess.copy()
-    for _ in range(ICP_ITERATIONS):
-        moved = g.apply(pose, src)
-        dist, idx = tree.query(moved)
-        keep = dist <= np.quantile(dist, ICP_KEEP)
-        rot, t = metrics.align_rigid(moved[keep], tree.data[idx[keep]])
-        step = np.eye(3)
-        step[:2, :2], step[:2, 2] = rot, t
-        pose = step @ pose
+    pose = trimmed_icp(src, tree, guess, ICP_ITERATIONS, ICP_KEEP)
     dist, _ = tree.query(g.apply(pose, src))
     keep = dist <= np.quantile(dist, ICP_KEEP)
     p = src[keep]
@@ -113,7 +126,7 @@ class _Loops:
     """Loop candidates verified by ICP against submaps, from a given estimate."""
 
     def __init__(self, frames: list[np.ndarray]) -> None:
-        self.points = [_points(f) for f in frames]
+        self.points = [strided(f) for f in frames]
 
     def submap(self, poses: np.ndarray, i: int) -> cKDTree:
         ks = range(max(0, i - SUBMAP_HALF), min(len(poses), i + SUBMAP_HALF + 1))

@@ -37,7 +37,7 @@ from strep_core.config import RunConfig, merge
 from strep_core.events import Event, IterationEvent, pose_list
 from strep_core.methods.base import MethodOutput, RunContext
 from strep_core.sequence import Sequence
-from strep_core.window_graph import close_loops
+from strep_core.window_graph import close_loops, rigid, strided, trimmed_icp
 
 if TYPE_CHECKING:
     from strep_core.model import Variant
@@ -49,8 +49,6 @@ OVERLAP = 128
 # The refinement's settings over the run's own: the joined chain is close, so the loop pairs join
 # at once, and fewer iterations than from identity (docs/design/long-scratch.md).
 REFINE: dict[str, dict[str, Any]] = {"loss": {"loop_after": 0.0}, "optim": {"iterations": 300}}
-# Points of each shared frame used by a join (strided).
-JOIN_POINTS = 256
 # The map join's ICP: iterations, and the share of the window's closest matches it fits.
 MAP_ICP_ITERATIONS = 20
 MAP_ICP_KEEP = 0.8
@@ -79,27 +77,16 @@ def total_iterations(seq: Sequence, config: RunConfig) -> int:
     return len(wins) * config.optim.iterations + total_steps(len(seq), refine_config(config))
 
 
-def _rigid(rot: np.ndarray, t: np.ndarray) -> np.ndarray:
-    d = rot.shape[0]
-    move = np.eye(d + 1)
-    move[:d, :d], move[:d, d] = rot, t
-    return move
-
-
-def _points(seq: Sequence, k: int) -> np.ndarray:
-    return seq.frames[k][:: max(1, len(seq.frames[k]) // JOIN_POINTS)]
-
-
 def join(poses: np.ndarray, done: np.ndarray, window: np.ndarray, est: np.ndarray, seq: Sequence) -> np.ndarray:
     """``est`` (the window's poses, its own axes) moved rigidly onto ``poses`` by the frames of
     ``window`` already in ``done``: one rigid fit of the shared frames' points, placed both ways."""
     shared = np.flatnonzero(done[window])
     if len(shared) == 0:
         return est
-    pts = [_points(seq, window[i]) for i in shared]
+    pts = [strided(seq.frames[window[i]]) for i in shared]
     src = [g.apply(est[i], p) for i, p in zip(shared, pts, strict=True)]
     dst = [g.apply(poses[window[i]], p) for i, p in zip(shared, pts, strict=True)]
-    return _rigid(*metrics.align_rigid(np.concatenate(src), np.concatenate(dst)))[None] @ est
+    return rigid(*metrics.align_rigid(np.concatenate(src), np.concatenate(dst)))[None] @ est
 
 
 def join_on_map(poses: np.ndarray, done: np.ndarray, window: np.ndarray, est: np.ndarray, seq: Sequence) -> np.ndarray:
@@ -110,14 +97,11 @@ def join_on_map(poses: np.ndarray, done: np.ndarray, window: np.ndarray, est: np
     before = np.flatnonzero(done)
     if len(before) == 0:
         return est
-    tree = cKDTree(np.concatenate([g.apply(poses[k], _points(seq, k)) for k in before]))
-    local = [_points(seq, k) for k in window]
-    for _ in range(MAP_ICP_ITERATIONS):
-        src = np.concatenate([g.apply(est[i], p) for i, p in enumerate(local)])
-        dist, idx = tree.query(src)
-        keep = dist <= np.quantile(dist, MAP_ICP_KEEP)
-        est = _rigid(*metrics.align_rigid(src[keep], tree.data[idx[keep]]))[None] @ est
-    return est
+    tree = cKDTree(np.concatenate([g.apply(poses[k], strided(seq.frames[k])) for k in before]))
+    # the window as one rigid body, in its first frame's axes
+    body = np.concatenate([g.apply(g.relative(est[0], est[i]), strided(seq.frames[k])) for i, k in enumerate(window)])
+    moved = trimmed_icp(body, tree, est[0], MAP_ICP_ITERATIONS, MAP_ICP_KEEP)
+    return (moved @ g.inverse(est[0]))[None] @ est
 
 
 @dataclass

@@ -74,9 +74,7 @@ class LoopParams:
 
 def loop_params(slam: LaserSlamParams, scale: float) -> LoopParams:
     """Defaults from the data's scale and the submap size."""
-    return LoopParams(
-        every=1.0 * scale, radius=1.0 * scale, max_radius=3.0 * scale, min_gap=2 * slam.submap_scans, candidates=6
-    )
+    return LoopParams(every=1.0 * scale, radius=1.0 * scale, max_radius=3.0 * scale, min_gap=2 * slam.submap_scans)
 
 
 def chain_edges(poses: np.ndarray, matches: Sequence[Match]) -> list[Edge]:
