@@ -204,6 +204,23 @@ def test_carmen_beam_geometry_invalid_ranges_and_odometry(tmp_path: Path) -> Non
     np.testing.assert_allclose(g.se2_to_xytheta(seq.poses)[1], [1.0, 2.0, np.pi / 2])
 
 
+def test_carmen_beam_step_is_the_formats_own(tmp_path: Path) -> None:
+    """180 beams step 1 degree from -90 (the last at +89, as CARMEN reads them), 181 span 180
+    degrees exactly, 360 step 0.5 degree; other counts span 180 degrees."""
+    from strep_core.io.carmen import beam_step
+
+    assert np.degrees([beam_step(180), beam_step(181), beam_step(360), beam_step(401)]) == pytest.approx(
+        [1.0, 1.0, 0.5, 0.25]
+    )
+    assert beam_step(5) == pytest.approx(np.pi / 4)
+    log = tmp_path / "sick.log.gz"
+    line = _flaser(list(2.0 + 0.01 * np.arange(180)), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    log.write_bytes(gzip.compress((line + "\n" + line + "\n").encode()))
+    pts = read_carmen(log, max_range=10.0).frames[0]
+    bearing = np.degrees(np.arctan2(pts[:, 1], pts[:, 0]))
+    assert bearing[0] == pytest.approx(-90.0) and bearing[-1] == pytest.approx(89.0)
+
+
 @pytest.mark.parametrize(
     "content",
     [

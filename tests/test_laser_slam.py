@@ -191,6 +191,21 @@ def test_the_step_bound_follows_the_steps_the_log_moved() -> None:
     assert motion.bounds()[0] == pytest.approx(3.0)
 
 
+def test_steps_turning_in_place_do_not_cap_the_step_bound() -> None:
+    """A laser off the axis of rotation moves a little while the robot turns in place (intel's
+    first eleven scans: 0.05 m at 30 degrees); those steps are no evidence of its speed, so the
+    first real step (1 m) stays inside the bound."""
+    from strep_core.registration.submaps import _Motion
+
+    motion = _Motion(LaserSlamParams(resolution=0.04, max_range=25.0, window=2.7))
+    for _ in range(12):
+        motion.add(0.06, np.radians(30.0))
+    assert motion.bounds()[0] == pytest.approx(1.35)
+    for _ in range(12):
+        motion.add(0.2, np.radians(2.0))
+    assert motion.bounds()[0] == pytest.approx(0.6)
+
+
 def test_a_second_loop_pass_from_the_graph_reaches_a_drifted_revisit() -> None:
     """The chain drifted 40 m by the time the robot returns: nothing is searched from the local
     poses; from the graph's estimates (here: near the truth) the revisit is found and the closure,

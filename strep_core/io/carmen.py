@@ -4,8 +4,13 @@ Only ``FLASER`` lines are read::
 
     FLASER n r_0 ... r_{n-1} x y theta odom_x odom_y odom_theta timestamp host logger_timestamp
 
-* ``r_i`` are ranges in metres; the ``n`` beams span 180 degrees around the heading, beam
-  ``i`` at angle ``-pi/2 + i * pi / (n - 1)`` (radians, counter-clockwise, 0 = ahead).
+* ``r_i`` are ranges in metres; beam ``i`` is at angle ``-pi/2 + i * step`` (radians,
+  counter-clockwise, 0 = ahead) with CARMEN's own step for an ``FLASER`` line
+  (``carmen_laser_guess_angle_increment``): 1 degree for 180 or 181 beams, 0.5 for 360 or
+  361, 0.25 for 400 or 401 (a SICK's 180 / 360 / 400 beams leave the last one out: they end one
+  step short of ``+pi/2``), otherwise ``pi / (n - 1)``. Spacing 180 beams ``pi / 179`` instead
+  stretches every bearing by 0.56 %, which the local SLAM turns into a heading drift
+  (docs/design/laser-slam.md, round 4).
 * ``x y theta`` is the laser pose corrected by a SLAM system: the ground truth here.
 * ``odom_x odom_y odom_theta`` is the raw odometry: the initial guess (``initial_poses``).
   "Corrected" logs such as intel and aces overwrite it with the corrected pose on every
@@ -60,6 +65,14 @@ def _lines(path: Path, budget: ReadBudget) -> Iterator[tuple[int, str]]:
         raise FormatError(f"{path}: cannot read CARMEN log ({exc})") from exc
     except UnicodeDecodeError as exc:
         raise FormatError(f"{path}: not a text CARMEN log ({exc.reason} near line {lineno + 1})") from exc
+
+
+def beam_step(n: int) -> float:
+    """The angle between two beams of an ``n``-beam ``FLASER`` line, as CARMEN reads it."""
+    for beams, degrees in (((180, 181), 1.0), ((360, 361), 0.5), ((400, 401), 0.25)):
+        if n in beams:
+            return float(np.radians(degrees))
+    return float(np.pi / (n - 1))
 
 
 def _parse_flaser(tokens: list[str], where: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -139,7 +152,7 @@ def read_carmen(
     pts, gt, odom = [], [], []
     for i in sel:
         r, pose, od = scans[i]
-        angles = -np.pi / 2 + np.arange(len(r)) * (np.pi / (len(r) - 1))
+        angles = -np.pi / 2 + np.arange(len(r)) * beam_step(len(r))
         ok = np.isfinite(r) & (r > 0) & (r < limit)
         pts.append(np.stack([r[ok] * np.cos(angles[ok]), r[ok] * np.sin(angles[ok])], 1))
         gt.append(pose)
