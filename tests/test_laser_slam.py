@@ -238,3 +238,19 @@ def test_a_second_loop_pass_from_the_graph_reaches_a_drifted_revisit() -> None:
     assert len(second) == 1 and tried == 1 and (second[0].i, second[0].j) == (0, k_frames - 1)
     off = g.relative(g.relative(poses[0], truth), second[0].transform)
     assert np.hypot(*off[:2, 2]) < 0.1 and abs(np.arctan2(off[1, 0], off[0, 0])) < np.radians(1.0)
+
+
+def test_an_ambiguous_match_lets_the_graph_reach_its_other_peak() -> None:
+    """The covariance added along the line between two peaks carries the turn with the same sign
+    as the translation: the other peak (0.8 m ahead and 6 degrees left) is within one sigma; the
+    motion with the turn's sign flipped, as before round 5, is far outside."""
+    from strep_core.registration.submaps import _spread
+
+    chosen = g.se2_from_xytheta(np.array([2.0, 1.0, 0.3]))
+    other = chosen @ g.se2_from_xytheta(np.array([0.8, 0.05, np.radians(6.0)]))
+    cov = np.diag([0.02**2, 0.02**2, np.radians(0.25) ** 2]) + _spread(chosen, other)
+    rel = g.relative(chosen, other)
+    d = np.array([rel[0, 2], rel[1, 2], np.arctan2(rel[1, 0], rel[0, 0])])
+    flipped = d * np.array([1.0, 1.0, -1.0])
+    assert d @ np.linalg.solve(cov, d) < 1.0
+    assert flipped @ np.linalg.solve(cov, flipped) > 100.0

@@ -390,15 +390,21 @@ def _match(
     motion.scores = [*motion.scores, score][-p.history :]
     cov = _motion_covariance(info, pose, res)
     if verdict == "ambiguous":  # uncertain along the line between the two peaks
-        d = np.zeros(3)
-        d[:2] = pose[:2, :2].T @ (pose_a[:2, 2] - pose_b[:2, 2])
-        d[2] = float(np.arctan2(apart[1, 0], apart[0, 0]))
-        cov = cov + np.outer(d, d)
+        cov = cov + _spread(pose_b, pose_a)
     else:
         eig = np.linalg.eigvalsh(info[:2, :2])
         if eig[0] < p.weak_ratio * max(eig[1], 1e-12):
             verdict = "ambiguous"
     return Match(verdict, score, pose, cov, window)
+
+
+def _spread(chosen: np.ndarray, other: np.ndarray) -> np.ndarray:
+    """``d d^T`` for ``d`` the motion ``(x, y, theta)`` from the chosen peak to the other, in the
+    chosen peak's frame: translation and turn with one sign, so the pose graph can slide to the
+    other peak at a Mahalanobis cost of 1 (round 5 fixed the turn's sign; docs/design/laser-slam.md)."""
+    rel = g.relative(chosen, other)
+    d = np.array([rel[0, 2], rel[1, 2], np.arctan2(rel[1, 0], rel[0, 0])])
+    return np.outer(d, d)
 
 
 def _turn_cost(pred: np.ndarray, pose: np.ndarray, p: LaserSlamParams) -> float:
