@@ -5,12 +5,11 @@ Only ``FLASER`` lines are read::
     FLASER n r_0 ... r_{n-1} x y theta odom_x odom_y odom_theta timestamp host logger_timestamp
 
 * ``r_i`` are ranges in metres; beam ``i`` is at angle ``-pi/2 + i * step`` (radians,
-  counter-clockwise, 0 = ahead) with CARMEN's own step for an ``FLASER`` line
-  (``carmen_laser_guess_angle_increment``): 1 degree for 180 or 181 beams, 0.5 for 360 or
-  361, 0.25 for 400 or 401 (a SICK's 180 / 360 / 400 beams leave the last one out: they end one
-  step short of ``+pi/2``), otherwise ``pi / (n - 1)``. Spacing 180 beams ``pi / 179`` instead
-  stretches every bearing by 0.56 %, which the local SLAM turns into a heading drift
-  (docs/design/laser-slam.md, round 4).
+  counter-clockwise, 0 = ahead), the start and step CARMEN's own parser gives an ``FLASER``
+  line (``carmen_laser_guess_angle_increment``): 1 degree for 180 or 181 beams, 0.5 for 360 or
+  361, 0.25 for 400 or 401, otherwise ``pi / (n - 1)``. A SICK's 180 beams thus end at +89
+  degrees; spacing them ``pi / 179`` stretches every bearing by 0.56 %, which the local SLAM
+  turns into a heading drift (docs/design/laser-slam.md, rounds 4 and 5).
 * ``x y theta`` is the laser pose corrected by a SLAM system: the ground truth here.
 * ``odom_x odom_y odom_theta`` is the raw odometry: the initial guess (``initial_poses``).
   "Corrected" logs such as intel and aces overwrite it with the corrected pose on every
