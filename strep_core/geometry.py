@@ -85,7 +85,7 @@ def _clip(x: Array, lo: float, hi: float) -> Array:
     return x.clamp(lo, hi) if _is_torch(x) else np.clip(x, lo, hi)
 
 
-def _homogeneous(rot: Array, trans: Array) -> Array:
+def homogeneous(rot: Array, trans: Array) -> Array:
     """Build ``(..., D+1, D+1)`` from ``rot (..., D, D)`` and ``trans (..., D)``."""
     xp = _xp(rot)
     d = rot.shape[-1]
@@ -126,7 +126,7 @@ def inverse(pose: Array) -> Array:
     """Inverse of a rigid pose ``(..., D+1, D+1)`` (uses ``R^T``, not a general inverse)."""
     rot_t = _swap(rotation(pose))
     t = translation(pose)
-    return _homogeneous(rot_t, -(rot_t @ t[..., :, None])[..., 0])
+    return homogeneous(rot_t, -(rot_t @ t[..., :, None])[..., 0])
 
 
 def apply(pose: Array, points: Array) -> Array:
@@ -160,7 +160,7 @@ def so2_angle(rot: Array) -> Array:
 def se2_from_xytheta(v: Array) -> Array:
     """Pose ``(..., 3, 3)`` from pose vectors ``(..., 3)`` = ``(x, y, theta)``."""
     v = _asfloat(v)
-    return _homogeneous(so2(v[..., 2]), v[..., :2])
+    return homogeneous(so2(v[..., 2]), v[..., :2])
 
 
 def se2_to_xytheta(pose: Array) -> Array:
@@ -186,7 +186,7 @@ def se2_exp(xi: Array) -> Array:
     a, b = _se2_v(theta)
     vx, vy = xi[..., 0], xi[..., 1]
     t = _stack([a * vx - b * vy, b * vx + a * vy], -1)
-    return _homogeneous(so2(theta), t)
+    return homogeneous(so2(theta), t)
 
 
 def se2_log(pose: Array) -> Array:
@@ -287,7 +287,7 @@ def so3_log(rot: Array) -> Array:
 def se3_from_vector(v: Array) -> Array:
     """Pose ``(..., 4, 4)`` from pose vectors ``(..., 6)`` = ``(t, omega)``, omega axis-angle."""
     v = _asfloat(v)
-    return _homogeneous(so3_exp(v[..., 3:]), v[..., :3])
+    return homogeneous(so3_exp(v[..., 3:]), v[..., :3])
 
 
 def se3_to_vector(pose: Array) -> Array:
@@ -306,7 +306,7 @@ def se3_exp(xi: Array) -> Array:
     eye = _eye(3, w)
     rot = eye + a[..., None, None] * k + b[..., None, None] * kk
     v = eye + b[..., None, None] * k + c[..., None, None] * kk
-    return _homogeneous(rot, (v @ rho[..., :, None])[..., 0])
+    return homogeneous(rot, (v @ rho[..., :, None])[..., 0])
 
 
 def se3_log(pose: Array) -> Array:

@@ -36,11 +36,7 @@ def align_rigid(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 def alignment_pose(est_poses: np.ndarray, gt_poses: np.ndarray) -> np.ndarray:
     """The rigid transform ``(D+1, D+1)`` that best maps estimated positions onto ground truth."""
-    rot, t = align_rigid(g.translation(est_poses), g.translation(gt_poses))
-    d = rot.shape[0]
-    out = np.eye(d + 1)
-    out[:d, :d], out[:d, d] = rot, t
-    return out
+    return g.homogeneous(*align_rigid(g.translation(est_poses), g.translation(gt_poses)))
 
 
 def aligned(est_poses: np.ndarray, gt_poses: np.ndarray) -> np.ndarray:

@@ -62,14 +62,6 @@ def strided(frame: np.ndarray) -> np.ndarray:
     return frame[:: max(1, len(frame) // POINTS)]
 
 
-def rigid(rot: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """The homogeneous motion of a rotation ``(D, D)`` and a translation ``(D,)``."""
-    d = rot.shape[0]
-    move = np.eye(d + 1)
-    move[:d, :d], move[:d, d] = rot, t
-    return move
-
-
 def trimmed_icp(src: np.ndarray, tree: cKDTree, guess: np.ndarray, iterations: int, keep: float) -> np.ndarray:
     """Point-to-point ICP of ``src`` (its own frame, any dimension) onto ``tree``'s points from
     ``guess``, each rigid fit on the ``keep`` share of closest matches; returns the pose."""
@@ -78,7 +70,7 @@ def trimmed_icp(src: np.ndarray, tree: cKDTree, guess: np.ndarray, iterations: i
         moved = g.apply(pose, src)
         dist, idx = tree.query(moved)
         kept = dist <= np.quantile(dist, keep)
-        pose = rigid(*metrics.align_rigid(moved[kept], tree.data[idx[kept]])) @ pose
+        pose = g.homogeneous(*metrics.align_rigid(moved[kept], tree.data[idx[kept]])) @ pose
     return pose
 
 

@@ -37,7 +37,7 @@ from strep_core.config import RunConfig, merge
 from strep_core.events import Event, IterationEvent, pose_list
 from strep_core.methods.base import MethodOutput, RunContext
 from strep_core.sequence import Sequence
-from strep_core.window_graph import close_loops, rigid, strided, trimmed_icp
+from strep_core.window_graph import close_loops, strided, trimmed_icp
 
 if TYPE_CHECKING:
     from strep_core.model import Variant
@@ -86,7 +86,7 @@ def join(poses: np.ndarray, done: np.ndarray, window: np.ndarray, est: np.ndarra
     pts = [strided(seq.frames[window[i]]) for i in shared]
     src = [g.apply(est[i], p) for i, p in zip(shared, pts, strict=True)]
     dst = [g.apply(poses[window[i]], p) for i, p in zip(shared, pts, strict=True)]
-    return rigid(*metrics.align_rigid(np.concatenate(src), np.concatenate(dst)))[None] @ est
+    return g.homogeneous(*metrics.align_rigid(np.concatenate(src), np.concatenate(dst)))[None] @ est
 
 
 def join_on_map(poses: np.ndarray, done: np.ndarray, window: np.ndarray, est: np.ndarray, seq: Sequence) -> np.ndarray:

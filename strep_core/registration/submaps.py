@@ -402,8 +402,7 @@ def _spread(chosen: np.ndarray, other: np.ndarray) -> np.ndarray:
     """``d d^T`` for ``d`` the motion ``(x, y, theta)`` from the chosen peak to the other, in the
     chosen peak's frame: translation and turn with one sign, so the pose graph can slide to the
     other peak at a Mahalanobis cost of 1 (round 5 fixed the turn's sign; docs/design/laser-slam.md)."""
-    rel = g.relative(chosen, other)
-    d = np.array([rel[0, 2], rel[1, 2], np.arctan2(rel[1, 0], rel[0, 0])])
+    d = g.se2_to_xytheta(g.relative(chosen, other))
     return np.outer(d, d)
 
 
