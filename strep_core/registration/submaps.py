@@ -355,8 +355,10 @@ def _match(
     pose, info, score = pose_a, info_a, score_a
     floor = p.min_score * (float(np.median(motion.scores)) if motion.scores else 0.6)
     two_peaks = gap > 2 * res or abs(float(np.arctan2(apart[1, 0], apart[0, 0]))) > np.radians(1.0)
-    # two real peaks of about one height (a turn away from the prediction costs): steady motion decides
-    near = score_b - _turn_cost(pred, pose_b, p) >= score_a - _turn_cost(pred, pose_a, p) - p.peak_margin
+    # two real peaks of about one height (a turn away from both going on and stopping costs):
+    # steady motion decides (round 6, docs/design/laser-slam.md)
+    cost_a, cost_b = (_turn_cost(pred, anchor, pose, p) for pose in (pose_a, pose_b))
+    near = score_b - cost_b >= score_a - cost_a - p.peak_margin
     if two_peaks and score_b >= floor and near:
         verdict, pose, info, score = "ambiguous", pose_b, info_b, score_b
     sums: list[tuple[float, float]] = []
@@ -378,7 +380,9 @@ def _match(
     step = float(np.hypot(*rel[:2, 2]))
     turn = abs(float(np.arctan2(rel[1, 0], rel[0, 0])))
     wide = np.diag([step_bound**2, step_bound**2, turn_bound**2])
-    if step > step_bound or turn > turn_bound:  # unphysical: bridged at the prediction
+    # unphysical: bridged at the prediction; the refinement may turn past the searched bound by a
+    # yaw step (aces scan 169: a -78.5 degree spin found at -80.0, refined to -80.2)
+    if step > step_bound or turn > turn_bound + sm_params.yaw_step:
         return Match("failed", score, pred.copy(), wide, window)
     if score < floor:  # a weak peak: the latest scan picks the bridge, free for the graph
         bridge = pose_b
@@ -406,10 +410,15 @@ def _spread(chosen: np.ndarray, other: np.ndarray) -> np.ndarray:
     return np.outer(d, d)
 
 
-def _turn_cost(pred: np.ndarray, pose: np.ndarray, p: LaserSlamParams) -> float:
-    """Score lost by turning away from the prediction: ``prior_weight`` per radian squared."""
-    rel = g.relative(pred, pose)
-    return p.prior_weight * float(np.arctan2(rel[1, 0], rel[0, 0])) ** 2
+def _turn_cost(pred: np.ndarray, anchor: np.ndarray, pose: np.ndarray, p: LaserSlamParams) -> float:
+    """Score lost by turning away from the motion: ``prior_weight`` per radian squared from the
+    nearer of two headings, the prediction's (the turn goes on) and the anchor's (it stopped)."""
+
+    def turn(a: np.ndarray) -> float:
+        rel = g.relative(a, pose)
+        return float(np.arctan2(rel[1, 0], rel[0, 0]))
+
+    return p.prior_weight * min(turn(pred) ** 2, turn(anchor) ** 2)
 
 
 def _motion_covariance(info_world: np.ndarray, pose: np.ndarray, res: float) -> np.ndarray:
