@@ -89,6 +89,7 @@ class Match:
     pose: np.ndarray
     covariance: np.ndarray
     window: float = 0.0
+    spun: bool = False  # failed, bridged at the prediction because its turn passed the bound
 
 
 @dataclass
@@ -116,16 +117,26 @@ class Submap:
         self.scans.append(k)
         self._cloud = None
 
-    def cloud(self, resolution: float) -> np.ndarray:
-        """The submap's points, one per ``resolution`` cell (cached until the next insert)."""
+    def cloud(self, resolution: float, *, without: int | None = None) -> np.ndarray:
+        """The submap's points, one per ``resolution`` cell (cached until the next insert);
+        ``without``: leave that scan out (not cached; an active submap's own scans only)."""
+        if without is not None:
+            return _voxel_points(
+                np.concatenate([pts for pts, k in zip(self.points, self.scans, strict=True) if k != without]),
+                resolution,
+            )
         if self._cloud is None:
-            pts = np.concatenate(self.points)
-            keys = np.floor(pts / resolution).astype(np.int64)
-            _, first = np.unique(keys[:, 0] * 2_000_003 + keys[:, 1], return_index=True)
-            self._cloud = pts[np.sort(first)]
+            self._cloud = _voxel_points(np.concatenate(self.points), resolution)
             if self.finished:
                 self.points = [self._cloud]  # a frozen submap keeps only its voxelised points
         return self._cloud
+
+
+def _voxel_points(pts: np.ndarray, resolution: float) -> np.ndarray:
+    """The first point of each ``resolution`` cell, in their order."""
+    keys = np.floor(pts / resolution).astype(np.int64)
+    _, first = np.unique(keys[:, 0] * 2_000_003 + keys[:, 1], return_index=True)
+    return pts[np.sort(first)]
 
 
 def derive_params(seq: Sequence) -> LaserSlamParams:
@@ -278,6 +289,11 @@ def local_slam(
     for k in range(1, k_frames):
         target_map = next(sm for sm in submaps if not sm.finished and sm.count > 0)
         target = target_map.cloud(res)
+        if k - last_ok == 2 and matches[k - 1].spun and target_map.scans[:-1]:
+            # the previous scan turned past the bound and was bridged at the prediction, whose
+            # heading a stopped spin makes wrong: this scan is matched without the bridge (aces
+            # [155:255] turned by -90 degrees 1.08 -> 0.11 m; docs/design/laser-slam.md, round 6)
+            target = target_map.cloud(res, without=k - 1)
         pred = poses[k - 1] @ velocity
         step_bound, turn_bound = motion.bounds()
         # after failures the motion since the last accepted scan may be as many bounds long
@@ -383,7 +399,7 @@ def _match(
     # unphysical: bridged at the prediction; the refinement may turn past the searched bound by a
     # yaw step (aces scan 169: a -78.5 degree spin found at -80.0, refined to -80.2)
     if step > step_bound or turn > turn_bound + sm_params.yaw_step:
-        return Match("failed", score, pred.copy(), wide, window)
+        return Match("failed", score, pred.copy(), wide, window, spun=turn > turn_bound + sm_params.yaw_step)
     if score < floor:  # a weak peak: the latest scan picks the bridge, free for the graph
         bridge = pose_b
         if recent is not None:
