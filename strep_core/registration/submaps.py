@@ -398,8 +398,9 @@ def _match(
     wide = np.diag([step_bound**2, step_bound**2, turn_bound**2])
     # unphysical: bridged at the prediction; the refinement may turn past the searched bound by a
     # yaw step (aces scan 169: a -78.5 degree spin found at -80.0, refined to -80.2)
-    if step > step_bound or turn > turn_bound + sm_params.yaw_step:
-        return Match("failed", score, pred.copy(), wide, window, spun=turn > turn_bound + sm_params.yaw_step)
+    spun = turn > turn_bound + sm_params.yaw_step
+    if step > step_bound or spun:
+        return Match("failed", score, pred.copy(), wide, window, spun=spun)
     if score < floor:  # a weak peak: the latest scan picks the bridge, free for the graph
         bridge = pose_b
         if recent is not None:
