@@ -288,12 +288,11 @@ def local_slam(
     insert(0)
     for k in range(1, k_frames):
         target_map = next(sm for sm in submaps if not sm.finished and sm.count > 0)
-        target = target_map.cloud(res)
-        if k - last_ok == 2 and matches[k - 1].spun and target_map.scans[:-1]:
-            # the previous scan turned past the bound and was bridged at the prediction, whose
-            # heading a stopped spin makes wrong: this scan is matched without the bridge (aces
-            # [155:255] turned by -90 degrees 1.08 -> 0.11 m; docs/design/laser-slam.md, round 6)
-            target = target_map.cloud(res, without=k - 1)
+        # after a scan that turned past the bound and was bridged at the prediction (whose heading
+        # a stopped spin makes wrong), this scan is matched without the bridge (aces[155:255]
+        # turned by -90 degrees 1.08 -> 0.11 m; docs/design/laser-slam.md, round 6)
+        spun = k - last_ok == 2 and matches[k - 1].spun and target_map.count > 1
+        target = target_map.cloud(res, without=k - 1 if spun else None)
         pred = poses[k - 1] @ velocity
         step_bound, turn_bound = motion.bounds()
         # after failures the motion since the last accepted scan may be as many bounds long
@@ -431,11 +430,7 @@ def _turn_cost(pred: np.ndarray, anchor: np.ndarray, pose: np.ndarray, p: LaserS
     """Score lost by turning away from the motion: ``prior_weight`` per radian squared from the
     nearer of two headings, the prediction's (the turn goes on) and the anchor's (it stopped)."""
 
-    def turn(a: np.ndarray) -> float:
-        rel = g.relative(a, pose)
-        return float(np.arctan2(rel[1, 0], rel[0, 0]))
-
-    return p.prior_weight * min(turn(pred) ** 2, turn(anchor) ** 2)
+    return p.prior_weight * min(float(g.so2_angle(g.relative(a, pose)[:2, :2])) ** 2 for a in (pred, anchor))
 
 
 def _motion_covariance(info_world: np.ndarray, pose: np.ndarray, res: float) -> np.ndarray:
