@@ -82,7 +82,12 @@ def main() -> None:
         )
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(rows, indent=1) + "\n")
+        report = {
+            "machine": f"2-core shared CPU, {args.workers} logs at a time",
+            "command": "PYTHONPATH=. python benchmarks/laser_proxies.py",
+            "rows": rows,
+        }
+        args.out.write_text(json.dumps(report, indent=1) + "\n")
 
 
 if __name__ == "__main__":
