@@ -24,6 +24,7 @@ Conventions: 2D points ``(N, 2)``, poses ``(3, 3)`` SE(2), source -> target
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -221,12 +222,19 @@ class ScanMatcher:
     # ---- search
 
     def match(
-        self, source: np.ndarray, guess: np.ndarray | None = None, *, prior: np.ndarray | None = None
+        self,
+        source: np.ndarray,
+        guess: np.ndarray | None = None,
+        *,
+        prior: np.ndarray | None = None,
+        yaw_cost: Callable[[np.ndarray], np.ndarray] | None = None,
     ) -> MatchResult:
         """The best source -> target pose on the grid, within the window around ``guess``.
 
         ``prior``: ``(2,)`` expected translation; candidates lose ``prior_weight * (|t - prior| /
-        prior_scale)^2`` of score (the bounds lose the least penalty over each node's box)."""
+        prior_scale)^2`` of score (the bounds lose the least penalty over each node's box);
+        ``yaw_cost``: score lost at each heading (radians in, array out; a node loses the least
+        over its yaws)."""
         p, res = self.params, self.params.resolution
         guess = np.eye(3) if guess is None else np.asarray(guess, dtype=np.float64)
         src = np.asarray(source, dtype=np.float64)[:, :2]
@@ -264,10 +272,17 @@ class ScanMatcher:
             gain = p.prior_weight * _Q * n_pts * (res / p.prior_scale) ** 2
         else:
             pc, gain = None, 0.0
+        yaw_pen: dict[int, np.ndarray] = {}
+        if yaw_cost is not None:
+            cost = np.ceil(_Q * n_pts * np.maximum(np.asarray(yaw_cost(yaws), dtype=np.float64), 0.0))
+            for L in range(self.depth + 1):
+                yaw_pen[L] = np.minimum.reduceat(cost, np.arange(0, self.n_yaw, self._yaw_group(L))).astype(np.int64)
 
         def score(L: int, yg: np.ndarray, ox: np.ndarray, oy: np.ndarray) -> np.ndarray:
             idx = point_cells(L)[yg] + (ox * size + oy).astype(np.int32)[:, None]
             out = np.take(self.flat[L], idx).sum(1, dtype=np.int64)
+            if yaw_pen:
+                out = out - yaw_pen[L][yg]
             if pc is None:
                 return out
             hi = (1 << L) - 1

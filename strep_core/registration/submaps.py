@@ -8,8 +8,10 @@ After Cartographer's local SLAM (Hess et al., ICRA 2016) and Olson's correlative
   is finished (frozen) after `LaserSlamParams.submap_scans` scans, so the matching target is
   never a thin new submap;
 * each scan is registered against the older active submap: the branch-and-bound search of
-  `strep_core.scanmatch` within a window around the constant-velocity prediction, then a
-  point-to-line Gauss-Newton refinement against the submap's points (`refine`);
+  `strep_core.scanmatch` within a window around the constant-velocity prediction (each heading
+  paying its turn from the prediction or from stopping; a straight step held at least at the
+  keyframe spacing where the log shows one), then a point-to-line Gauss-Newton refinement
+  against the submap's points (`refine`);
 * nothing unphysical: the window and the motion bounds come from the log itself (robust
   statistics of the accepted steps and turns); a match outside them or with a low score is
   *failed* and bridged at the prediction with a wide covariance; a match whose refinement
@@ -218,6 +220,19 @@ class _Motion:
         self.steps = [*self.steps, step][-self.p.history :]
         self.turns = [*self.turns, turn][-self.p.history :]
 
+    def straight_step(self) -> float | None:
+        """The keyframe spacing: the median of the accepted straight steps (over a grid cell,
+        under 10 degrees) where the log keeps a scan per distance travelled (their 10th
+        percentile within 25 % of their median, once 20 were seen), else None. Seven of the eight
+        CARMEN logs do (5th percentile 0.79-0.96 of the median), freiburg-079 does not (0.01 of
+        0.10 m; docs/design/laser-slam.md, round 7)."""
+        straight = np.radians(10.0)
+        moving = [s for s, t in zip(self.steps, self.turns, strict=True) if s > self.p.resolution and t < straight]
+        if len(moving) < 20:
+            return None
+        med = float(np.median(moving))
+        return med if float(np.percentile(moving, 10)) >= 0.75 * med else None
+
     @property
     def known(self) -> bool:
         return len(self.steps) >= 10
@@ -293,7 +308,9 @@ def local_slam(
         # turned by -90 degrees 1.08 -> 0.11 m; docs/design/laser-slam.md, round 6)
         spun = k - last_ok == 2 and matches[k - 1].spun and target_map.count > 1
         target = target_map.cloud(res, without=k - 1 if spun else None)
-        pred = poses[k - 1] @ velocity
+        # constant velocity; in a keyframed log a straight step that slid short along a corridor
+        # is not the speed (infinite-corridor[0:100] 3.78 -> 0.49 m; laser-slam.md, round 7)
+        pred = poses[k - 1] @ _keyframe_velocity(velocity, motion.straight_step())
         step_bound, turn_bound = motion.bounds()
         # after failures the motion since the last accepted scan may be as many bounds long
         n = k - last_ok
@@ -346,7 +363,10 @@ def _match(
         prior_scale=p.prior_scale,
     )
     matcher = ScanMatcher(target, sm_params, center=anchor[:2, 2])
-    found = matcher.match(points, anchor, prior=pred[:2, 2])
+    # every heading pays its turn cost in the search itself, not only in the choice between two
+    # peaks: a wrong heading far from both going on and stopping no longer wins on a few points
+    # (belgioioso, acapulco at half rate: -97 and 113 degree turns; laser-slam.md, round 7)
+    found = matcher.match(points, anchor, prior=pred[:2, 2], yaw_cost=_yaw_cost(pred, anchor, p))
     tree = cKDTree(target)
     normals = normals_2d(target, tree)
     pose_a, info_a, _ = refine(points, tree, target, normals, found.pose, 3 * res)
@@ -373,6 +393,11 @@ def _match(
     # two real peaks of about one height (a turn away from both going on and stopping costs):
     # steady motion decides (round 6, docs/design/laser-slam.md)
     cost_a, cost_b = (_turn_cost(pred, anchor, pose, p) for pose in (pose_a, pose_b))
+    regular = motion.straight_step()
+    if regular is not None:  # and a straight step off the keyframe spacing (round 7)
+        cost_a, cost_b = (
+            c + _keyframe_cost(anchor, pose, regular, p) for c, pose in ((cost_a, pose_a), (cost_b, pose_b))
+        )
     near = score_b - cost_b >= score_a - cost_a - p.peak_margin
     if two_peaks and score_b >= floor and near:
         verdict, pose, info, score = "ambiguous", pose_b, info_b, score_b
@@ -431,6 +456,43 @@ def _turn_cost(pred: np.ndarray, anchor: np.ndarray, pose: np.ndarray, p: LaserS
     nearer of two headings, the prediction's (the turn goes on) and the anchor's (it stopped)."""
 
     return p.prior_weight * min(float(g.so2_angle(g.relative(a, pose)[:2, :2])) ** 2 for a in (pred, anchor))
+
+
+def _keyframe_velocity(velocity: np.ndarray, spacing: float | None) -> np.ndarray:
+    """``velocity``, its straight step (under 10 degrees) lengthened to the keyframe ``spacing``
+    if shorter. Lengthening only: carried at the spacing both ways, freiburg-campus whole went
+    0.42 -> 2.03 m (round 7)."""
+    step = float(np.hypot(*velocity[:2, 2]))
+    if (
+        spacing is None
+        or step < 1e-9
+        or step >= spacing
+        or abs(float(np.arctan2(velocity[1, 0], velocity[0, 0]))) >= np.radians(10.0)
+    ):
+        return velocity
+    out = velocity.copy()
+    out[:2, 2] *= spacing / step
+    return out
+
+
+def _keyframe_cost(anchor: np.ndarray, pose: np.ndarray, regular: float, p: LaserSlamParams) -> float:
+    """Score lost by a straight step (under 10 degrees) off the keyframe spacing ``regular``:
+    ``prior_weight`` per the squared share it is off by; a turning step pays nothing."""
+    rel = g.relative(anchor, pose)
+    if abs(float(np.arctan2(rel[1, 0], rel[0, 0]))) >= np.radians(10.0):
+        return 0.0
+    return p.prior_weight * ((float(np.hypot(*rel[:2, 2])) - regular) / regular) ** 2
+
+
+def _yaw_cost(pred: np.ndarray, anchor: np.ndarray, p: LaserSlamParams) -> Callable[[np.ndarray], np.ndarray]:
+    """`_turn_cost` as a function of the heading (radians, an array), for the branch and bound."""
+    heads = [float(np.arctan2(a[1, 0], a[0, 0])) for a in (pred, anchor)]
+
+    def cost(yaw: np.ndarray) -> np.ndarray:
+        d = [np.angle(np.exp(1j * (yaw - h))) for h in heads]
+        return p.prior_weight * np.minimum(d[0] ** 2, d[1] ** 2)
+
+    return cost
 
 
 def _motion_covariance(info_world: np.ndarray, pose: np.ndarray, res: float) -> np.ndarray:
