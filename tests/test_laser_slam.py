@@ -259,15 +259,15 @@ def test_an_ambiguous_match_lets_the_graph_reach_its_other_peak() -> None:
 def test_a_turn_costs_from_the_nearer_of_going_on_and_stopping() -> None:
     """The constant-velocity prediction carries a spin on; a spin in place stops. Neither the
     prediction's heading nor the last scan's pays turn cost; a heading between them does."""
-    from strep_core.registration.submaps import _turn_cost
+    from strep_core.registration.motion_prior import turn_cost
 
     p = LaserSlamParams(resolution=0.05, max_range=30.0, window=2.0, prior_weight=0.2)
     anchor = g.se2_from_xytheta(np.array([1.0, 2.0, 0.4]))
     pred = anchor @ g.se2_from_xytheta(np.array([0.0, 0.0, np.radians(-78.0)]))
-    assert _turn_cost(pred, anchor, pred, p) == pytest.approx(0.0, abs=1e-12)
-    assert _turn_cost(pred, anchor, anchor, p) == pytest.approx(0.0, abs=1e-12)
+    assert turn_cost(pred, anchor, pred, p.prior_weight) == pytest.approx(0.0, abs=1e-12)
+    assert turn_cost(pred, anchor, anchor, p.prior_weight) == pytest.approx(0.0, abs=1e-12)
     half = anchor @ g.se2_from_xytheta(np.array([0.0, 0.0, np.radians(-39.0)]))
-    assert _turn_cost(pred, anchor, half, p) == pytest.approx(0.2 * np.radians(39.0) ** 2)
+    assert turn_cost(pred, anchor, half, p.prior_weight) == pytest.approx(0.2 * np.radians(39.0) ** 2)
 
 
 @pytest.mark.parametrize(("frames", "heading"), [("0:200", 0.0), ("0:200", -90.0), ("155:255", -90.0)])
@@ -303,7 +303,8 @@ def test_a_log_keyframed_by_distance_shows_its_spacing() -> None:
     10th percentile lies within 25 % of the median. A log recorded at a fixed rate (freiburg-079:
     0.02 against 0.10 m) shows no spacing. A straight step that slid short is lengthened to the
     spacing in the prediction, never shortened; off the spacing it pays in the choice of peaks."""
-    from strep_core.registration.submaps import _keyframe_cost, _keyframe_velocity, _Motion
+    from strep_core.registration.motion_prior import keyframe_cost, keyframe_velocity
+    from strep_core.registration.submaps import _Motion
 
     p = LaserSlamParams(resolution=0.05, max_range=30.0, window=3.0, prior_weight=0.2)
     rng = np.random.default_rng(0)
@@ -316,17 +317,19 @@ def test_a_log_keyframed_by_distance_shows_its_spacing() -> None:
     assert spacing == pytest.approx(1.02, abs=0.05)
     assert dense.straight_step() is None
     short = g.se2_from_xytheta(np.array([0.1, 0.02, 0.01]))
-    np.testing.assert_allclose(_keyframe_velocity(short, spacing)[:2, 2], short[:2, 2] * spacing / np.hypot(0.1, 0.02))
+    np.testing.assert_allclose(keyframe_velocity(short, spacing)[:2, 2], short[:2, 2] * spacing / np.hypot(0.1, 0.02))
     for kept in (g.se2_from_xytheta(np.array([1.5, 0.0, 0.01])), g.se2_from_xytheta(np.array([0.1, 0.0, 0.5]))):
-        np.testing.assert_array_equal(_keyframe_velocity(kept, spacing), kept)  # longer, or turning
-    np.testing.assert_array_equal(_keyframe_velocity(short, None), short)
+        np.testing.assert_array_equal(keyframe_velocity(kept, spacing), kept)  # longer, or turning
+    np.testing.assert_array_equal(keyframe_velocity(short, None), short)
     anchor = g.se2_from_xytheta(np.array([1.0, 2.0, 0.4]))
     stuck = anchor @ g.se2_from_xytheta(np.array([0.1, 0.0, 0.01]))
     ahead = anchor @ g.se2_from_xytheta(np.array([spacing, 0.0, 0.01]))
     turning = anchor @ g.se2_from_xytheta(np.array([0.1, 0.0, np.radians(30.0)]))
-    assert _keyframe_cost(anchor, ahead, spacing, p) == pytest.approx(0.0, abs=1e-12)
-    assert _keyframe_cost(anchor, stuck, spacing, p) == pytest.approx(0.2 * ((0.1 - spacing) / spacing) ** 2)
-    assert _keyframe_cost(anchor, turning, spacing, p) == 0.0
+    assert keyframe_cost(anchor, ahead, spacing, p.prior_weight) == pytest.approx(0.0, abs=1e-12)
+    assert keyframe_cost(anchor, stuck, spacing, p.prior_weight) == pytest.approx(
+        0.2 * ((0.1 - spacing) / spacing) ** 2
+    )
+    assert keyframe_cost(anchor, turning, spacing, p.prior_weight) == 0.0
 
 
 def test_the_chain_does_not_stick_in_a_keyframed_corridor(shared_data) -> None:

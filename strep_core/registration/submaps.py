@@ -31,6 +31,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from strep_core import geometry as g
+from strep_core.registration.motion_prior import keyframe_cost, keyframe_velocity, turn_cost, yaw_cost
 from strep_core.registration.params import point_spacing
 from strep_core.scanmatch import ScanMatcher, ScanMatchParams
 from strep_core.sequence import Sequence
@@ -310,7 +311,7 @@ def local_slam(
         target = target_map.cloud(res, without=k - 1 if spun else None)
         # constant velocity; in a keyframed log a straight step that slid short along a corridor
         # is not the speed (infinite-corridor[0:100] 3.78 -> 0.49 m; laser-slam.md, round 7)
-        pred = poses[k - 1] @ _keyframe_velocity(velocity, motion.straight_step())
+        pred = poses[k - 1] @ keyframe_velocity(velocity, motion.straight_step())
         step_bound, turn_bound = motion.bounds()
         # after failures the motion since the last accepted scan may be as many bounds long
         n = k - last_ok
@@ -366,7 +367,7 @@ def _match(
     # every heading pays its turn cost in the search itself, not only in the choice between two
     # peaks: a wrong heading far from both going on and stopping no longer wins on a few points
     # (belgioioso, acapulco at half rate: -97 and 113 degree turns; laser-slam.md, round 7)
-    found = matcher.match(points, anchor, prior=pred[:2, 2], yaw_cost=_yaw_cost(pred, anchor, p))
+    found = matcher.match(points, anchor, prior=pred[:2, 2], yaw_cost=yaw_cost(pred, anchor, p.prior_weight))
     tree = cKDTree(target)
     normals = normals_2d(target, tree)
     pose_a, info_a, _ = refine(points, tree, target, normals, found.pose, 3 * res)
@@ -392,11 +393,11 @@ def _match(
     two_peaks = gap > 2 * res or abs(float(np.arctan2(apart[1, 0], apart[0, 0]))) > np.radians(1.0)
     # two real peaks of about one height (a turn away from both going on and stopping costs):
     # steady motion decides (round 6, docs/design/laser-slam.md)
-    cost_a, cost_b = (_turn_cost(pred, anchor, pose, p) for pose in (pose_a, pose_b))
+    cost_a, cost_b = (turn_cost(pred, anchor, pose, p.prior_weight) for pose in (pose_a, pose_b))
     regular = motion.straight_step()
     if regular is not None:  # and a straight step off the keyframe spacing (round 7)
         cost_a, cost_b = (
-            c + _keyframe_cost(anchor, pose, regular, p) for c, pose in ((cost_a, pose_a), (cost_b, pose_b))
+            c + keyframe_cost(anchor, pose, regular, p.prior_weight) for c, pose in ((cost_a, pose_a), (cost_b, pose_b))
         )
     near = score_b - cost_b >= score_a - cost_a - p.peak_margin
     if two_peaks and score_b >= floor and near:
@@ -449,50 +450,6 @@ def _spread(chosen: np.ndarray, other: np.ndarray) -> np.ndarray:
     other peak at a Mahalanobis cost of 1 (round 5 fixed the turn's sign; docs/design/laser-slam.md)."""
     d = g.se2_to_xytheta(g.relative(chosen, other))
     return np.outer(d, d)
-
-
-def _turn_cost(pred: np.ndarray, anchor: np.ndarray, pose: np.ndarray, p: LaserSlamParams) -> float:
-    """Score lost by turning away from the motion: ``prior_weight`` per radian squared from the
-    nearer of two headings, the prediction's (the turn goes on) and the anchor's (it stopped)."""
-
-    return p.prior_weight * min(float(g.so2_angle(g.relative(a, pose)[:2, :2])) ** 2 for a in (pred, anchor))
-
-
-def _keyframe_velocity(velocity: np.ndarray, spacing: float | None) -> np.ndarray:
-    """``velocity``, its straight step (under 10 degrees) lengthened to the keyframe ``spacing``
-    if shorter. Lengthening only: carried at the spacing both ways, freiburg-campus whole went
-    0.42 -> 2.03 m (round 7)."""
-    step = float(np.hypot(*velocity[:2, 2]))
-    if (
-        spacing is None
-        or step < 1e-9
-        or step >= spacing
-        or abs(float(np.arctan2(velocity[1, 0], velocity[0, 0]))) >= np.radians(10.0)
-    ):
-        return velocity
-    out = velocity.copy()
-    out[:2, 2] *= spacing / step
-    return out
-
-
-def _keyframe_cost(anchor: np.ndarray, pose: np.ndarray, regular: float, p: LaserSlamParams) -> float:
-    """Score lost by a straight step (under 10 degrees) off the keyframe spacing ``regular``:
-    ``prior_weight`` per the squared share it is off by; a turning step pays nothing."""
-    rel = g.relative(anchor, pose)
-    if abs(float(np.arctan2(rel[1, 0], rel[0, 0]))) >= np.radians(10.0):
-        return 0.0
-    return p.prior_weight * ((float(np.hypot(*rel[:2, 2])) - regular) / regular) ** 2
-
-
-def _yaw_cost(pred: np.ndarray, anchor: np.ndarray, p: LaserSlamParams) -> Callable[[np.ndarray], np.ndarray]:
-    """`_turn_cost` as a function of the heading (radians, an array), for the branch and bound."""
-    heads = [float(np.arctan2(a[1, 0], a[0, 0])) for a in (pred, anchor)]
-
-    def cost(yaw: np.ndarray) -> np.ndarray:
-        d = [np.angle(np.exp(1j * (yaw - h))) for h in heads]
-        return p.prior_weight * np.minimum(d[0] ** 2, d[1] ** 2)
-
-    return cost
 
 
 def _motion_covariance(info_world: np.ndarray, pose: np.ndarray, res: float) -> np.ndarray:

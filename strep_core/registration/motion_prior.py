@@ -1,0 +1,55 @@
+"""Motion priors of the planar-laser local SLAM (`strep_core.registration.submaps`): score lost
+by turning away from the motion, and by a straight step off a keyframed log's spacing. Poses
+``(3, 3)`` SE(2); costs in score units (the share of a scan's likelihood, 0 to 1). Measurements:
+docs/design/laser-slam.md, rounds 6-7."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from strep_core import geometry as g
+
+
+def turn_cost(pred: np.ndarray, anchor: np.ndarray, pose: np.ndarray, weight: float) -> float:
+    """Score lost by turning away from the motion: ``weight`` per radian squared from the
+    nearer of two headings, the prediction's (the turn goes on) and the anchor's (it stopped)."""
+    return weight * min(float(g.so2_angle(g.relative(a, pose)[:2, :2])) ** 2 for a in (pred, anchor))
+
+
+def yaw_cost(pred: np.ndarray, anchor: np.ndarray, weight: float) -> Callable[[np.ndarray], np.ndarray]:
+    """`turn_cost` as a function of the heading (radians, an array), for the branch and bound."""
+    heads = [float(np.arctan2(a[1, 0], a[0, 0])) for a in (pred, anchor)]
+
+    def cost(yaw: np.ndarray) -> np.ndarray:
+        d = [np.angle(np.exp(1j * (yaw - h))) for h in heads]
+        return weight * np.minimum(d[0] ** 2, d[1] ** 2)
+
+    return cost
+
+
+def keyframe_velocity(velocity: np.ndarray, spacing: float | None) -> np.ndarray:
+    """``velocity``, its straight step (under 10 degrees) lengthened to the keyframe ``spacing``
+    if shorter. Lengthening only: carried at the spacing both ways, freiburg-campus whole went
+    0.42 -> 2.03 m (round 7)."""
+    step = float(np.hypot(*velocity[:2, 2]))
+    if (
+        spacing is None
+        or step < 1e-9
+        or step >= spacing
+        or abs(float(np.arctan2(velocity[1, 0], velocity[0, 0]))) >= np.radians(10.0)
+    ):
+        return velocity
+    out = velocity.copy()
+    out[:2, 2] *= spacing / step
+    return out
+
+
+def keyframe_cost(anchor: np.ndarray, pose: np.ndarray, regular: float, weight: float) -> float:
+    """Score lost by a straight step (under 10 degrees) off the keyframe spacing ``regular``:
+    ``weight`` per the squared share it is off by; a turning step pays nothing."""
+    rel = g.relative(anchor, pose)
+    if abs(float(np.arctan2(rel[1, 0], rel[0, 0]))) >= np.radians(10.0):
+        return 0.0
+    return weight * ((float(np.hypot(*rel[:2, 2])) - regular) / regular) ** 2
