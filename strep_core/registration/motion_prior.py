@@ -11,6 +11,8 @@ import numpy as np
 
 from strep_core import geometry as g
 
+STRAIGHT = float(np.radians(10.0))  # a step turning less than this is straight
+
 
 def turn_cost(pred: np.ndarray, anchor: np.ndarray, pose: np.ndarray, weight: float) -> float:
     """Score lost by turning away from the motion: ``weight`` per radian squared from the
@@ -38,7 +40,7 @@ def keyframe_velocity(velocity: np.ndarray, spacing: float | None) -> np.ndarray
         spacing is None
         or step < 1e-9
         or step >= spacing
-        or abs(float(np.arctan2(velocity[1, 0], velocity[0, 0]))) >= np.radians(10.0)
+        or abs(float(np.arctan2(velocity[1, 0], velocity[0, 0]))) >= STRAIGHT
     ):
         return velocity
     out = velocity.copy()
@@ -50,6 +52,6 @@ def keyframe_cost(anchor: np.ndarray, pose: np.ndarray, regular: float, weight: 
     """Score lost by a straight step (under 10 degrees) off the keyframe spacing ``regular``:
     ``weight`` per the squared share it is off by; a turning step pays nothing."""
     rel = g.relative(anchor, pose)
-    if abs(float(np.arctan2(rel[1, 0], rel[0, 0]))) >= np.radians(10.0):
+    if abs(float(np.arctan2(rel[1, 0], rel[0, 0]))) >= STRAIGHT:
         return 0.0
     return weight * ((float(np.hypot(*rel[:2, 2])) - regular) / regular) ** 2

@@ -31,7 +31,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from strep_core import geometry as g
-from strep_core.registration.motion_prior import keyframe_cost, keyframe_velocity, turn_cost, yaw_cost
+from strep_core.registration.motion_prior import STRAIGHT, keyframe_cost, keyframe_velocity, turn_cost, yaw_cost
 from strep_core.registration.params import point_spacing
 from strep_core.scanmatch import ScanMatcher, ScanMatchParams
 from strep_core.sequence import Sequence
@@ -221,14 +221,17 @@ class _Motion:
         self.steps = [*self.steps, step][-self.p.history :]
         self.turns = [*self.turns, turn][-self.p.history :]
 
+    def moving(self) -> list[float]:
+        """The accepted steps that moved (over a grid cell) without turning (`STRAIGHT`)."""
+        return [s for s, t in zip(self.steps, self.turns, strict=True) if s > self.p.resolution and t < STRAIGHT]
+
     def straight_step(self) -> float | None:
         """The keyframe spacing: the median of the accepted straight steps (over a grid cell,
         under 10 degrees) where the log keeps a scan per distance travelled (their 10th
         percentile within 25 % of their median, once 20 were seen), else None. Seven of the eight
         CARMEN logs do (5th percentile 0.79-0.96 of the median), freiburg-079 does not (0.01 of
         0.10 m; docs/design/laser-slam.md, round 7)."""
-        straight = np.radians(10.0)
-        moving = [s for s, t in zip(self.steps, self.turns, strict=True) if s > self.p.resolution and t < straight]
+        moving = self.moving()
         if len(moving) < 20:
             return None
         med = float(np.median(moving))
@@ -254,8 +257,7 @@ class _Motion:
         # than 10 degrees is no evidence of speed: a laser off the axis moves while the robot
         # turns in place (intel's first 11 scans, 0.06 m at 30 degrees, capped the bound at 0.27 m
         # before a 1 m step; docs/design/laser-slam.md, round 5)
-        straight = np.radians(10.0)
-        moving = [s for s, t in zip(self.steps, self.turns, strict=True) if s > self.p.resolution and t < straight]
+        moving = self.moving()
         if len(moving) >= 10:
             step = min(step, self.p.step_factor * float(np.percentile(moving, 90)))
         turn = max(self.p.bound_factor * float(np.percentile(self.turns, 90)) + np.radians(10.0), np.radians(45.0))
@@ -311,13 +313,14 @@ def local_slam(
         target = target_map.cloud(res, without=k - 1 if spun else None)
         # constant velocity; in a keyframed log a straight step that slid short along a corridor
         # is not the speed (infinite-corridor[0:100] 3.78 -> 0.49 m; laser-slam.md, round 7)
-        pred = poses[k - 1] @ keyframe_velocity(velocity, motion.straight_step())
+        spacing = motion.straight_step()
+        pred = poses[k - 1] @ keyframe_velocity(velocity, spacing)
         step_bound, turn_bound = motion.bounds()
         # after failures the motion since the last accepted scan may be as many bounds long
         n = k - last_ok
         step_bound, turn_bound = n * step_bound, min(np.pi, n * turn_bound)
         recent = g.apply(poses[k - 1], local[k - 1])
-        match = _match(local[k], target, pred, poses[last_ok], step_bound, turn_bound, p, motion, recent)
+        match = _match(local[k], target, pred, poses[last_ok], step_bound, turn_bound, p, motion, recent, spacing)
         poses[k] = match.pose
         matches.append(match)
         rel = g.relative(poses[k - 1], poses[k])
@@ -347,9 +350,11 @@ def _match(
     p: LaserSlamParams,
     motion: _Motion,
     recent: np.ndarray | None = None,
+    spacing: float | None = None,
 ) -> Match:
     """Branch and bound within the bounds around ``pred``, refinement, verdict; ``anchor`` is
-    the last accepted scan's pose and the bounds are on the motion since it."""
+    the last accepted scan's pose and the bounds are on the motion since it; ``spacing``: the
+    log's keyframe spacing (`_Motion.straight_step`), if it shows one."""
     res = p.resolution
     # the search covers exactly the bounds around the anchor; the prior leans to the prediction
     window = step_bound
@@ -394,10 +399,9 @@ def _match(
     # two real peaks of about one height (a turn away from both going on and stopping costs):
     # steady motion decides (round 6, docs/design/laser-slam.md)
     cost_a, cost_b = (turn_cost(pred, anchor, pose, p.prior_weight) for pose in (pose_a, pose_b))
-    regular = motion.straight_step()
-    if regular is not None:  # and a straight step off the keyframe spacing (round 7)
+    if spacing is not None:  # and a straight step off the keyframe spacing (round 7)
         cost_a, cost_b = (
-            c + keyframe_cost(anchor, pose, regular, p.prior_weight) for c, pose in ((cost_a, pose_a), (cost_b, pose_b))
+            c + keyframe_cost(anchor, pose, spacing, p.prior_weight) for c, pose in ((cost_a, pose_a), (cost_b, pose_b))
         )
     near = score_b - cost_b >= score_a - cost_a - p.peak_margin
     if two_peaks and score_b >= floor and near:
