@@ -70,6 +70,31 @@ def test_the_graph_survives_injected_wrong_closures(intel_window) -> None:
     assert 4 <= kept <= 5  # the true ones, and at most one wrong one that happens to agree
 
 
+def test_closures_of_one_revisit_that_disagree_are_left_out() -> None:
+    """A corridor driven twice (scans 0-59 out, 60-119 along it again, 1 m a scan): the revisit
+    closes 24 times onto the truth and 8 times onto the corridor's repetition 13 m on, which
+    agree with each other; `consistent` drops the 8 and keeps the 24. A wrong closure far from
+    every other one stays: nothing checks it (GNC judges it)."""
+    n = 120
+    xs = np.concatenate([np.arange(60.0), np.arange(60.0) + 0.3])  # the revisit a little aside
+    gt = np.stack([g.se2_from_xytheta(np.array([x, 0.0 if k < 60 else 1.0, 0.0])) for k, x in enumerate(xs)])
+    cov = np.diag([0.025**2, 0.025**2, np.radians(0.25) ** 2])
+    matches = [Match("accepted", 0.8, gt[k], cov) for k in range(n)]
+    slam = LaserSlamParams(resolution=0.05, max_range=30.0, window=2.0)
+    lp = lg.LoopParams(every=1.0, radius=1.0, max_radius=3.0, min_gap=20)
+    alias = g.se2_from_xytheta(np.array([13.0, 0.0, 0.0]))
+    right = [lg.Edge(j - 60, j, g.relative(gt[j - 60], gt[j]), cov, loop=True) for j in range(70, 118, 2)]
+    wrong = [lg.Edge(j - 60, j, g.relative(gt[j - 60], gt[j]) @ alias, cov, loop=True) for j in range(71, 87, 2)]
+    lone = lg.Edge(0, 40, g.relative(gt[0], gt[40]) @ alias, cov, loop=True)
+    kept = lg.consistent(right + wrong + [lone], gt, matches, slam, lp)
+    assert {(e.i, e.j) for e in kept} == {(e.i, e.j) for e in right} | {(0, 40)}
+    # with the aliased block in the majority of its stretch, it is the true ones that go there
+    many = [lg.Edge(j - 60, j, g.relative(gt[j - 60], gt[j]) @ alias, cov, loop=True) for j in range(71, 118, 2)]
+    few = right[:3]
+    kept = lg.consistent(few + many, gt, matches, slam, lp)
+    assert {(e.i, e.j) for e in kept} == {(e.i, e.j) for e in many}
+
+
 def test_local_slam_bridges_a_garbage_scan_instead_of_jumping(intel_window) -> None:
     """Scan 50 replaced by random points: it fails (low score) and is bridged inside the motion
     bounds (about two steps of this log) with a wide covariance; the rest stays registered."""

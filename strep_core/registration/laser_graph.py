@@ -60,6 +60,8 @@ class LoopParams:
             rule aces 0.131 -> 0.151 m and freiburg-079 257 s; docs/design/laser-slam.md).
         yaw_window: headings searched around the estimate's (+-; every heading, pi, found no
             more closures on freiburg-campus at 1.5 times the cost).
+        neighbours: closures within this many searches of travel of each other check each
+            other (`consistent`).
     """
 
     every: float
@@ -70,6 +72,7 @@ class LoopParams:
     candidates: int = 6
     yaw_window: float = float(np.radians(30.0))
     passes: int = 2
+    neighbours: float = 20.0
 
 
 def loop_params(slam: LaserSlamParams, scale: float) -> LoopParams:
@@ -214,6 +217,62 @@ def _close(
     rot = np.eye(3)
     rot[:2, :2] = pose[:2, :2].T
     return Edge(sm.anchor, k, rel, rot @ cov @ rot.T, score, loop=True)
+
+
+def consistent(
+    loops: Sequence[Edge], poses: np.ndarray, matches: Sequence[Match], slam: LaserSlamParams, params: LoopParams
+) -> list[Edge]:
+    """The closures that agree with their neighbours (pairwise consistency over the chain).
+
+    Closures a and b check each other when their scans lie within ``params.neighbours``
+    searches of travel (``params.every`` each) and their anchors within twice that. They agree
+    when the cycle they close with the chain, ``Z_a^-1 (T_ia^-1 T_ib) Z_b`` against ``T_ka^-1
+    T_kb``, shuts within ten grid cells plus three sigma of the chain's and both closures'
+    translation uncertainty. The closure with the most disagreements over agreements is dropped,
+    then the next, until each one left agrees at least as often as it disagrees; one with no
+    neighbour stays for GNC to judge. Along a repeated corridor the wrong closures of a revisit
+    disagree with the right ones: infinite-corridor turned by 30 degrees 2.14 -> 0.80 m
+    (docs/design/laser-slam.md, round 8). ``poses``: the local SLAM's.
+    """
+    n = len(loops)
+    if n < 2:
+        return list(loops)
+    travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poses[:, :2, 2], axis=0), axis=1))])
+    var = np.concatenate([[0.0], np.cumsum([np.trace(m.covariance[:2, :2]) for m in matches[1:]])])
+    reach = params.neighbours * params.every
+    floor = (10 * slam.resolution) ** 2
+    order = sorted(range(n), key=lambda a: travelled[loops[a].j])
+    balance = np.zeros(n, dtype=np.int64)  # agreements minus disagreements
+    votes: list[list[tuple[int, int]]] = [[] for _ in range(n)]
+    for x, a in enumerate(order):
+        ea = loops[a]
+        back = np.linalg.inv(ea.transform)
+        for b in order[x + 1 :]:
+            eb = loops[b]
+            if travelled[eb.j] - travelled[ea.j] > reach:
+                break
+            if abs(travelled[ea.i] - travelled[eb.i]) > 2 * reach:
+                continue
+            cycle = g.relative(
+                g.relative(poses[ea.j], poses[eb.j]), back @ g.relative(poses[ea.i], poses[eb.i]) @ eb.transform
+            )
+            sigma2 = abs(var[ea.j] - var[eb.j]) + abs(var[ea.i] - var[eb.i])
+            sigma2 += np.trace(ea.covariance[:2, :2]) + np.trace(eb.covariance[:2, :2])
+            vote = 1 if float(np.hypot(*cycle[:2, 2])) ** 2 < floor + 9 * sigma2 else -1
+            votes[a].append((b, vote))
+            votes[b].append((a, vote))
+            balance[a] += vote
+            balance[b] += vote
+    alive = np.ones(n, dtype=bool)
+    while True:
+        live = np.flatnonzero(alive)
+        worst = live[int(np.argmin(balance[live]))]
+        if balance[worst] >= 0:
+            break
+        alive[worst] = False
+        for b, vote in votes[worst]:
+            balance[b] -= vote
+    return [e for e, keep in zip(loops, alive, strict=True) if keep]
 
 
 def optimise(poses: np.ndarray, edges: Sequence[Edge], *, robust: bool = True) -> tuple[np.ndarray, int]:

@@ -4,7 +4,9 @@
 verdicts and covariances), `strep_core.registration.laser_graph.search_loops` (scans against
 finished submaps) and `strep_core.registration.laser_graph.optimise` (graduated
 non-convexity over the loops). Every setting is derived from the data (`derive_params`,
-`loop_params`); why each is what it is: docs/design/laser-slam.md.
+`loop_params`); closures that disagree with their neighbours are left out of the graph
+(`strep_core.registration.laser_graph.consistent`); why each is what it is:
+docs/design/laser-slam.md.
 
 Memory and time are linear in scans: a scan's points, one voxelised cloud per finished
 submap, a bounded number of searches per scan, and a sparse graph.
@@ -20,14 +22,17 @@ from typing import Any
 
 import numpy as np
 
-from strep_core.registration.laser_graph import Edge, chain_edges, loop_params, optimise, search_loops
+from strep_core.registration.laser_graph import Edge, chain_edges, consistent, loop_params, optimise, search_loops
 from strep_core.registration.submaps import Match, derive_params, local_slam
 from strep_core.sequence import Sequence
 
 
 @dataclass
 class LaserSlamResult:
-    """Poses ``(K, 3, 3)`` after the graph, the local SLAM's, and what each step decided."""
+    """Poses ``(K, 3, 3)`` after the graph, the local SLAM's, and what each step decided.
+
+    ``loops``: every closure found; ``loops_inconsistent`` of them disagreed with their
+    neighbours and stayed out of the graph; ``loops_kept``: GNC's inliers among the rest."""
 
     poses: np.ndarray
     local_poses: np.ndarray
@@ -35,6 +40,7 @@ class LaserSlamResult:
     loops: list[Edge]
     loops_kept: int
     loops_tried: int
+    loops_inconsistent: int = 0
     timings: dict[str, float] = field(default_factory=dict)
 
     def verdicts(self) -> dict[str, int]:
@@ -63,6 +69,7 @@ class LaserSlamResult:
                 for e in self.loops
             ],
             "loops_kept": self.loops_kept,
+            "loops_inconsistent": self.loops_inconsistent,
             "loops_tried": self.loops_tried,
         }
 
@@ -86,7 +93,8 @@ def laser_slam(
         seq.frames, local, matches, submaps, params, lp, searched=searched, on_scan=on_loop_search
     )
     t2 = time.perf_counter()
-    poses, kept = optimise(local, chain + loops)
+    used = consistent(loops, local, matches, params, lp)
+    poses, kept = optimise(local, chain + used)
     t_loops, t_graph = t2 - t1, time.perf_counter() - t2
     # a second search from the graph's poses (LoopParams.passes): the first closures bring in
     # reach revisits that the chain's drift kept out (freiburg-campus 1.21 -> 0.415 m;
@@ -102,7 +110,8 @@ def laser_slam(
         if not new:
             break
         loops += new
-        poses, kept = optimise(local, chain + loops)
+        used = consistent(loops, local, matches, params, lp)
+        poses, kept = optimise(local, chain + used)
         t_graph += time.perf_counter() - t3
     return LaserSlamResult(
         poses=poses,
@@ -111,6 +120,7 @@ def laser_slam(
         loops=loops,
         loops_kept=kept,
         loops_tried=tried,
+        loops_inconsistent=len(loops) - len(used),
         timings={"registration": t1 - t0, "loop_closure": t_loops, "optimization": t_graph},
     )
 
