@@ -238,8 +238,10 @@ def test_comparison_recording_and_viewer(client: TestClient, tmp_path: Path, mon
 def test_viewer_throttles_two_live_jobs(client: TestClient) -> None:
     """Two jobs emitting an event every 20 ms: each is pushed at most once per throttle interval.
 
-    The bound is taken over the measured window, so a loaded machine (slower jobs, a late
-    pusher) cannot fail it; the real update rate is measured by ``benchmarks/viewer_rate.py``.
+    The window lasts until each job was pushed at least once (a pusher starved by a loaded
+    machine only makes it longer) and the bound is taken over the measured window, so load
+    changes the figures, not the verdict; the real update rate is measured by
+    ``benchmarks/viewer_rate.py``.
     """
     viewer = client.app.state.service.viewer
     steps = 200  # x 20 ms
@@ -257,7 +259,16 @@ def test_viewer_throttles_two_live_jobs(client: TestClient) -> None:
 
     wait_until(lambda: min(iterations()) >= 25, what="both jobs live", timeout=120)
     t0, pushes0, its0 = time.monotonic(), dict(viewer.stats.pushes_by_job), iterations()
-    wait_until(lambda: max(iterations()) >= steps - 25 or time.monotonic() - t0 > 3, what="progress", timeout=120)
+
+    def pushed() -> bool:
+        now = viewer.stats.pushes_by_job
+        return all(now.get(j, 0) > pushes0.get(j, 0) for j in ids)
+
+    wait_until(
+        lambda: pushed() and (max(iterations()) >= steps - 25 or time.monotonic() - t0 > 3),
+        what="progress and a push of each job",
+        timeout=120,
+    )
     t1, pushes1, its1 = time.monotonic(), dict(viewer.stats.pushes_by_job), iterations()
     pushes = [pushes1[j] - pushes0.get(j, 0) for j in ids]
     events = [b - a for a, b in zip(its0, its1, strict=True)]
