@@ -138,6 +138,8 @@ def test_multiway_on_a_carmen_window_writes_its_matches(intel_window, tmp_path) 
     files = write_outputs(res, tmp_path)
     saved = json.loads(files["matches.json"].read_text())
     assert len(saved["scans"]) == 100 and saved["loops_tried"] >= len(saved["loops"])
+    left_out = sum(not loop["consistent"] for loop in saved["loops"])
+    assert left_out == saved["loops_inconsistent"] == res.metrics["loops_inconsistent"]
     assert_se2(res.poses)
 
 

@@ -31,8 +31,8 @@ from strep_core.sequence import Sequence
 class LaserSlamResult:
     """Poses ``(K, 3, 3)`` after the graph, the local SLAM's, and what each step decided.
 
-    ``loops``: every closure found; ``loops_inconsistent`` of them disagreed with their
-    neighbours and stayed out of the graph; ``loops_kept``: GNC's inliers among the rest."""
+    ``loops``: every closure found; ``left_out``: the ``(i, j)`` of those that disagreed with
+    their neighbours and stayed out of the graph; ``loops_kept``: GNC's inliers among the rest."""
 
     poses: np.ndarray
     local_poses: np.ndarray
@@ -40,8 +40,12 @@ class LaserSlamResult:
     loops: list[Edge]
     loops_kept: int
     loops_tried: int
-    loops_inconsistent: int = 0
+    left_out: frozenset[tuple[int, int]] = frozenset()
     timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def loops_inconsistent(self) -> int:
+        return len(self.left_out)
 
     def verdicts(self) -> dict[str, int]:
         """Count of each verdict over the consecutive matches (scan 0 excluded)."""
@@ -65,6 +69,7 @@ class LaserSlamResult:
                     "to": e.j,
                     "score": round(float(e.score), 4),
                     "covariance": np.round(e.covariance, 8).tolist(),
+                    "consistent": (e.i, e.j) not in self.left_out,
                 }
                 for e in self.loops
             ],
@@ -120,7 +125,7 @@ def laser_slam(
         loops=loops,
         loops_kept=kept,
         loops_tried=tried,
-        loops_inconsistent=len(loops) - len(used),
+        left_out=frozenset((e.i, e.j) for e in loops) - {(e.i, e.j) for e in used},
         timings={"registration": t1 - t0, "loop_closure": t_loops, "optimization": t_graph},
     )
 
