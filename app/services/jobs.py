@@ -44,7 +44,9 @@ from strep_core.config import RunConfig
 log = logging.getLogger("strep.service")
 
 KILL_AFTER_TERMINATE = 2.0  # seconds between SIGTERM and SIGKILL
-REAP_TIMEOUT = 10.0  # a worker that closed its pipe but does not exit is killed after this
+# a worker that closed its pipe but does not exit is killed after this; 30 s, not 10: on 2 cores
+# under four processes a strep worker's clean exit (torch's teardown) took over 10 s and was killed
+REAP_TIMEOUT = 30.0
 MAX_MESSAGES_PER_ROUND = 500  # per worker, so one chatty worker cannot starve the others
 MEMORY_POLL = 0.2  # seconds between two looks at the workers' resident memory (with a budget)
 
