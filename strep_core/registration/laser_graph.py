@@ -247,7 +247,7 @@ def consistent(
     for x, a in enumerate(order):
         ea = loops[a]
         back = np.linalg.inv(ea.transform)
-        for b in order[x + 1 :]:
+        for b in (order[y] for y in range(x + 1, n)):  # no copy of the tail: linear in closures
             eb = loops[b]
             if travelled[eb.j] - travelled[ea.j] > reach:
                 break
