@@ -89,6 +89,17 @@ def chain_edges(poses: np.ndarray, matches: Sequence[Match]) -> list[Edge]:
     return edges
 
 
+def _travelled(poses: np.ndarray) -> np.ndarray:
+    """``(K,)`` distance travelled along the chain up to each scan."""
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poses[:, :2, 2], axis=0), axis=1))])
+
+
+def _chain_variance(matches: Sequence[Match]) -> np.ndarray:
+    """``(K,)`` the chain's translation variance summed up to each scan (a bridged failure's
+    wide covariance widens it): the variance between two scans is the difference."""
+    return np.concatenate([[0.0], np.cumsum([np.trace(m.covariance[:2, :2]) for m in matches[1:]])])
+
+
 def search_loops(
     frames: Sequence[np.ndarray],
     poses: np.ndarray,
@@ -114,7 +125,7 @@ def search_loops(
     finished = [sm for sm in submaps if sm.finished]
     if not finished:
         return [], 0
-    var = np.concatenate([[0.0], np.cumsum([np.trace(m.covariance[:2, :2]) for m in matches[1:]])])
+    var = _chain_variance(matches)
     est = poses if estimates is None else estimates
     centres = np.array([sm.cloud(res).mean(0) for sm in finished])
     if estimates is not None:  # each centroid carried into the estimates' frame by its anchor's correction
@@ -130,7 +141,7 @@ def search_loops(
     floor = params.min_score * (float(np.median(scores)) if scores else 0.8)
     edges: list[Edge] = []
     tried = 0
-    travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poses[:, :2, 2], axis=0), axis=1))])
+    travelled = _travelled(poses)
     last = -np.inf
     cache: dict[int, tuple[cKDTree, np.ndarray]] = {}
     for k in range(len(poses)):
@@ -237,8 +248,8 @@ def consistent(
     n = len(loops)
     if n < 2:
         return list(loops)
-    travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poses[:, :2, 2], axis=0), axis=1))])
-    var = np.concatenate([[0.0], np.cumsum([np.trace(m.covariance[:2, :2]) for m in matches[1:]])])
+    travelled = _travelled(poses)
+    var = _chain_variance(matches)
     reach = params.neighbours * params.every
     floor = (10 * slam.resolution) ** 2
     order = sorted(range(n), key=lambda a: travelled[loops[a].j])
