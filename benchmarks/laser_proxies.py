@@ -14,7 +14,6 @@ pose) on windows every 300 scans (or every window's span, if longer) and counts 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -36,15 +35,7 @@ def windows(log: str, stride: int) -> list[dict[str, object]]:
     span = SCANS * stride
     rows = []
     for first in range(0, len(seq) - span + 1, max(span, 300)):
-        sl = slice(first, first + span, stride)
-        sub = dataclasses.replace(
-            seq,
-            frames=list(seq.frames)[sl],
-            poses=seq.poses[sl].copy(),
-            origins=None if seq.origins is None else seq.origins[sl],
-            indices=None if seq.indices is None else seq.indices[sl],
-            initial_poses=None,
-        )
+        sub = seq.select(slice(first, first + span, stride))
         poses, matches, _ = local_slam(sub.frames, derive_params(sub), start=sub.poses[0])
         verdicts = [m.verdict for m in matches]
         rows.append(
