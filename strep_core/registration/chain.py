@@ -84,6 +84,8 @@ def incremental_icp(
         poses3 = np.empty((k_frames, 4, 4))
         poses3[0] = project_planar(init3[0]) if params.planar else init3[0]
         pairs: list[PairResult] = []
+        bound = StepBound(STEP_FLOOR * seq.scale())
+        fine = params.max_correspondence * min(params.scales)
         for k in range(1, k_frames):
             guess = g.relative(init3[k - 1], init3[k])
             if params.velocity_prior and pairs:
@@ -93,6 +95,9 @@ def incremental_icp(
                 target = _local_map(clouds, poses3, k, params)
             prior = step_prior(pairs, stop=params.prior_stop)
             res = icp_pair(clouds[k], target, guess, params, prior=prior)
+            res = judge(res, clouds[k], target, guess, params, bound.limit(), fine)
+            if res.verdict != "failed":
+                bound.add(res)
             pairs.append(res)
             poses3[k] = poses3[k - 1] @ res.transformation
             if params.planar:
@@ -101,6 +106,103 @@ def incremental_icp(
                 on_frame(k, from_se3(poses3, seq.dim))
     poses = from_se3(poses3, seq.dim)
     return IncrementalResult(poses=poses, pairs=pairs, clouds=clouds, seconds=time.perf_counter() - started)
+
+
+STEP_FLOOR = 0.75
+"""A chain's step bound never falls below this share of the scale (the planar-laser front
+end's floor, half its initial window of 1.5 scales: `strep_core.registration.submaps`)."""
+
+
+class StepBound:
+    """The longest plausible step between two frames, from the chain's own accepted steps.
+
+    Twice the 90th percentile of the last 500 accepted steps once ten are known, never below
+    ``floor``; before that, twice the floor. A longer step is unphysical: issue 29's runaway
+    chains stepped 22 m where the robot moved 1 m. Turns are not bounded: a hand-held sensor may
+    turn as far as it likes between two frames. docs/design/lidar.md, verdicts.
+    """
+
+    def __init__(self, floor: float) -> None:
+        self.floor = floor
+        self.steps: list[float] = []
+
+    def add(self, pair: PairResult) -> None:
+        self.steps = [*self.steps[-499:], float(np.linalg.norm(pair.transformation[:3, 3]))]
+
+    def limit(self) -> float:
+        if len(self.steps) < 10:
+            return 2.0 * self.floor
+        return max(2.0 * float(np.percentile(self.steps, 90)), self.floor)
+
+
+def judge(
+    res: PairResult,
+    source: o3d.geometry.PointCloud,
+    target: o3d.geometry.PointCloud,
+    guess: np.ndarray,
+    params: RegistrationParams,
+    limit: float,
+    distance: float,
+) -> PairResult:
+    """``res`` with its verdict and covariance (`PairResult`).
+
+    *failed*: ICP kept its guess, or its step is longer than ``limit`` and so is ICP's from the
+    guess alone (no yaw search, no global start); then the pair is bridged at ``guess`` with a
+    wide covariance (``limit`` in translation, pi in rotation). A step past the bound whose
+    guess's own basin lies within it takes that basin: *ambiguous* (two peaks, the far one
+    unphysical). Otherwise the covariance is that of the point-to-plane objective at the result
+    (`plane_covariance`), so a corridor is uncertain along its axis; *ambiguous* when a
+    translation direction kept the guess (``degeneracy``) or carries under 0.02 of the
+    strongest's information (the planar-laser front end's ``weak_ratio``), else *accepted*.
+    """
+    from dataclasses import replace
+
+    n_t = 2 if params.planar else 3
+    wide = np.diag([limit**2] * n_t + [np.pi**2] * (1 if params.planar else 3))
+    if res.kept_guess:
+        return replace(res, verdict="failed", covariance=wide)
+    far = float(np.linalg.norm(res.transformation[:3, 3])) > limit
+    if far:
+        res = icp_pair(source, target, guess, params, yaw_search=False)
+        if res.kept_guess or float(np.linalg.norm(res.transformation[:3, 3])) > limit:
+            bridge = project_planar(guess) if params.planar else np.asarray(guess, dtype=np.float64)
+            return replace(res, transformation=bridge, verdict="failed", covariance=wide)
+    cov = plane_covariance(source, target, res.transformation, distance, planar=params.planar)
+    eig = np.linalg.eigvalsh(np.linalg.pinv(cov[:n_t, :n_t]))
+    weak = far or res.weak_directions > 0 or eig[0] < 0.02 * max(eig[-1], 1e-12)
+    return replace(res, verdict="ambiguous" if weak else "accepted", covariance=cov)
+
+
+def plane_covariance(
+    source: o3d.geometry.PointCloud,
+    target: o3d.geometry.PointCloud,
+    transform: np.ndarray,
+    distance: float,
+    *,
+    planar: bool = False,
+) -> np.ndarray:
+    """Covariance of a point-to-plane alignment over (translation, rotation): ``sigma^2 H^-1``.
+
+    ``H = sum J^T J`` with ``J = (n, p x n)`` per source point ``p`` (moved by ``transform``)
+    matched within ``distance`` to a target point of normal ``n``, ``sigma^2`` their mean
+    squared point-to-plane residual (floored at 1 % of ``distance``, squared). Open3D's own
+    information is point-to-point and cannot see a corridor. In 2D: (x, y, theta).
+    """
+    from scipy.spatial import cKDTree
+
+    src = np.asarray(source.points) @ transform[:3, :3].T + transform[:3, 3]
+    tgt, normals = np.asarray(target.points), np.asarray(target.normals)
+    dist, idx = cKDTree(tgt).query(src, distance_upper_bound=distance)
+    ok = np.isfinite(dist)
+    p, n = src[ok], normals[idx[ok]]
+    jac = np.hstack([n, np.cross(p - transform[:3, 3], n)])  # rotation about the source's origin
+    if planar:
+        jac = jac[:, [0, 1, 5]]
+    r = np.einsum("ij,ij->i", p - tgt[idx[ok]], n)
+    sigma2 = max(float(np.mean(r**2)) if len(r) else 0.0, (0.01 * distance) ** 2)
+    h = jac.T @ jac
+    h += 1e-9 * max(float(np.trace(h)), 1e-12) * np.eye(len(h))
+    return sigma2 * np.linalg.inv(h)
 
 
 def step_prior(pairs: list[PairResult], n: int = 5, *, stop: float = 0.0) -> np.ndarray | None:
@@ -133,17 +235,39 @@ def step_prior(pairs: list[PairResult], n: int = 5, *, stop: float = 0.0) -> np.
     return out
 
 
-def pair_report(pairs: list[PairResult]) -> tuple[dict[str, list[int]], dict[str, int]]:
-    """A run's report of its ICP pairs (frame k: pair k-1 -> k): for its artifacts, the frames
-    where ICP kept its guess (every stage failed) and where weakly constrained translation
-    directions were reset to the guess; for its metrics, their counts ``icp_kept_guess`` and
-    ``icp_weak_pairs``."""
-    frames = {
+def pair_report(pairs: list[PairResult]) -> tuple[dict[str, Any], dict[str, int]]:
+    """A run's report of its ICP pairs (frame k: pair k-1 -> k).
+
+    For its artifacts: the frames where ICP kept its guess (every stage failed) and where weakly
+    constrained translation directions were reset to the guess, and ``matches`` (written to
+    ``matches.json``): each pair's verdict, fitness, RMSE, step and covariance (`judge`). For
+    its metrics: ``icp_kept_guess``, ``icp_weak_pairs``, ``matches_failed`` and
+    ``matches_ambiguous``."""
+    frames: dict[str, Any] = {
         "kept_guess_frames": [k + 1 for k, p in enumerate(pairs) if p.kept_guess],
         "weak_direction_frames": [k + 1 for k, p in enumerate(pairs) if p.weak_directions],
     }
     kept, weak = frames["kept_guess_frames"], frames["weak_direction_frames"]
-    counts = {"icp_kept_guess": len(kept), "icp_weak_pairs": len(weak)}
+    verdicts = [p.verdict for p in pairs]
+    counts = {
+        "icp_kept_guess": len(kept),
+        "icp_weak_pairs": len(weak),
+        "matches_failed": verdicts.count("failed"),
+        "matches_ambiguous": verdicts.count("ambiguous"),
+    }
+    frames["matches"] = {
+        "pairs": [
+            {
+                "frame": k + 1,
+                "verdict": p.verdict,
+                "fitness": round(float(p.fitness), 4),
+                "rmse": float(p.inlier_rmse),
+                "step": float(np.linalg.norm(p.transformation[:3, 3])),
+                "covariance": None if p.covariance is None else np.round(p.covariance, 10).tolist(),
+            }
+            for k, p in enumerate(pairs)
+        ]
+    }
     return frames, counts
 
 

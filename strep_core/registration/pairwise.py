@@ -62,6 +62,11 @@ class PairResult:
         kept_guess: every ICP stage failed (see ``min_fitness``): the transform is the guess.
         weak_directions: how many translation directions were too weakly constrained by the
             matched normals and kept the guess's value (``degeneracy``).
+        verdict: set by the chain (`strep_core.registration.chain`): ``accepted``;
+            ``ambiguous`` (a translation direction weakly constrained); ``failed`` (ICP kept its
+            guess, or a step past the log's motion bound, bridged at the guess).
+        covariance: set by the chain: ``(D(D+1)/2, D(D+1)/2)`` over the motion's translation then
+            rotation (x, y, theta in 2D), in the target's frame; ``None`` until then.
     """
 
     transformation: np.ndarray
@@ -69,6 +74,8 @@ class PairResult:
     inlier_rmse: float
     kept_guess: bool = False
     weak_directions: int = 0
+    verdict: str = "accepted"
+    covariance: np.ndarray | None = None
 
 
 def icp_pair(
