@@ -58,6 +58,7 @@ from typing import Any
 import numpy as np
 
 from strep_core.sequence import Sequence
+from strep_core.voxels import first_per_cell
 
 # Overlays per config section. Values are what the benchmark measured best (docs/design/profiles.md).
 PROFILES: dict[str, dict[str, dict[str, Any]]] = {
@@ -182,9 +183,7 @@ def _overlap(source: np.ndarray, target_tree: Any, radius: float) -> float:
 
 
 def _subsample(points: np.ndarray, cell: float, limit: int = 3000) -> np.ndarray:
-    keys = np.floor(points / cell).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
-    out = points[np.sort(first)]
+    out = points[first_per_cell(points, cell)]
     if len(out) > limit:
         out = out[np.linspace(0, len(out) - 1, limit).astype(np.int64)]
     return out

@@ -29,6 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from strep_core.voxels import first_per_cell
+
 _Q = 255  # fields are stored as uint8: value * 255
 
 
@@ -112,9 +114,7 @@ def _rot(yaw: np.ndarray) -> np.ndarray:
 
 def _subsample(points: np.ndarray, cell: float, max_points: int) -> np.ndarray:
     """One point per ``cell`` voxel (the first), then at most ``max_points`` evenly spread."""
-    keys = np.floor(points / cell).astype(np.int64)
-    _, first = np.unique(keys[:, 0] * 1_000_003 + keys[:, 1], return_index=True)
-    pts = points[np.sort(first)]
+    pts = points[first_per_cell(points, cell)]
     if len(pts) > max_points:
         pts = pts[np.linspace(0, len(pts) - 1, max_points).round().astype(int)]
     return pts

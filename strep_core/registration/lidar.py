@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from strep_core.sequence import Sequence
+from strep_core.voxels import first_per_cell
 
 REFINE_CONE_DEG = 25.0  # normals within this angle of the sweep axis belong to horizontal surfaces
 GEOMETRY_FRAMES = 4  # frames measured, spread evenly over the sequence
@@ -132,9 +133,7 @@ def vertical_axis(seq: Sequence, *, voxel: float | None = None) -> np.ndarray:
     cell = voxel if voxel is not None else 0.04 * seq.scale()
     normals = []
     for f in frames:
-        keys = np.floor(f / cell).astype(np.int64)
-        _, first = np.unique(keys, axis=0, return_index=True)
-        normals.append(pca_normals(f[np.sort(first)], 4 * cell))
+        normals.append(pca_normals(f[first_per_cell(f, cell)], 4 * cell))
     axis = refine_axis(np.concatenate(normals), guess)
     return axis if axis @ guess >= 0 else -axis
 

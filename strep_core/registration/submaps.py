@@ -35,6 +35,7 @@ from strep_core.registration.motion_prior import STRAIGHT, keyframe_cost, keyfra
 from strep_core.registration.params import point_spacing
 from strep_core.scanmatch import ScanMatcher, ScanMatchParams
 from strep_core.sequence import Sequence
+from strep_core.voxels import first_per_cell
 
 Verdict = Literal["accepted", "ambiguous", "failed"]
 
@@ -137,9 +138,7 @@ class Submap:
 
 def _voxel_points(pts: np.ndarray, resolution: float) -> np.ndarray:
     """The first point of each ``resolution`` cell, in their order."""
-    keys = np.floor(pts / resolution).astype(np.int64)
-    _, first = np.unique(keys[:, 0] * 2_000_003 + keys[:, 1], return_index=True)
-    return pts[np.sort(first)]
+    return pts[first_per_cell(pts, resolution)]
 
 
 def derive_params(seq: Sequence) -> LaserSlamParams:
