@@ -17,6 +17,7 @@ RESULT_FILES: dict[str, str] = {
     "map.ply": "map.ply",
     "metrics.json": "metrics.json",
     "config.json": "config.json",
+    "matches.json": "matches.json",
     "model.pt": "model.pt",
     "recording.rrd": "recording.rrd",
 }
@@ -25,6 +26,7 @@ FILE_MEDIA_TYPES: dict[str, str] = {
     "map.ply": "application/octet-stream",
     "metrics.json": "application/json",
     "config.json": "application/json",
+    "matches.json": "application/json",
     "model.pt": "application/octet-stream",
     "recording.rrd": "application/octet-stream",
 }

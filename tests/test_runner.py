@@ -55,7 +55,8 @@ def test_run_input_reads_once_and_opens_the_sinks_on_the_selected_scene(tmp_path
     for extra in (recorder, plain):
         assert extra.events[0].kind == "start" and extra.events[-1].kind == "result"
         assert [e for e in main.events if e.kind not in ("stage",)] == [e for e in extra.events]
-    assert sorted(result.files) == ["config.json", "map.ply", "metrics.json", "trajectory.tum"]
+    # icp writes each pair's verdict and covariance too
+    assert sorted(result.files) == ["config.json", "map.ply", "matches.json", "metrics.json", "trajectory.tum"]
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == sorted(result.files)
 
 

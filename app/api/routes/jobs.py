@@ -244,7 +244,9 @@ async def job_events(
         **_errors(404, 409),
     },
     summary="Download a result file",
-    description="`name` is one of: " + ", ".join(RESULT_FILES) + " (model.pt for learned methods only).",
+    description="`name` is one of: "
+    + ", ".join(RESULT_FILES)
+    + " (model.pt for learned methods only; matches.json for icp and multiway).",
 )
 def job_file(job: JobDep, name: str, service: ServiceDep) -> FileResponse:
     filename = RESULT_FILES.get(name)
