@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -15,7 +15,7 @@ import numpy as np
 from strep_core import geometry as g
 from strep_core.errors import RegistrationError
 from strep_core.registration.clouds import from_se3, open3d_quiet, prepare_frame, project_planar, transform_cloud
-from strep_core.registration.pairwise import PairResult, icp_pair
+from strep_core.registration.pairwise import PairResult, correspondences, icp_pair
 from strep_core.registration.params import RegistrationParams
 from strep_core.sequence import Sequence
 
@@ -155,8 +155,6 @@ def judge(
     translation direction kept the guess (``degeneracy``) or carries under 0.02 of the
     strongest's information (the planar-laser front end's ``weak_ratio``), else *accepted*.
     """
-    from dataclasses import replace
-
     n_t = 2 if params.planar else 3
     wide = np.diag([limit**2] * n_t + [np.pi**2] * (1 if params.planar else 3))
     if res.kept_guess:
@@ -188,17 +186,13 @@ def plane_covariance(
     squared point-to-plane residual (floored at 1 % of ``distance``, squared). Open3D's own
     information is point-to-point and cannot see a corridor. In 2D: (x, y, theta).
     """
-    from scipy.spatial import cKDTree
-
-    src = np.asarray(source.points) @ transform[:3, :3].T + transform[:3, 3]
-    tgt, normals = np.asarray(target.points), np.asarray(target.normals)
-    dist, idx = cKDTree(tgt).query(src, distance_upper_bound=distance)
-    ok = np.isfinite(dist)
-    p, n = src[ok], normals[idx[ok]]
+    corr = correspondences(source, target, transform, distance)
+    p = np.asarray(source.points)[corr[:, 0]] @ transform[:3, :3].T + transform[:3, 3]
+    q, n = np.asarray(target.points)[corr[:, 1]], np.asarray(target.normals)[corr[:, 1]]
     jac = np.hstack([n, np.cross(p - transform[:3, 3], n)])  # rotation about the source's origin
     if planar:
         jac = jac[:, [0, 1, 5]]
-    r = np.einsum("ij,ij->i", p - tgt[idx[ok]], n)
+    r = np.einsum("ij,ij->i", p - q, n)
     sigma2 = max(float(np.mean(r**2)) if len(r) else 0.0, (0.01 * distance) ** 2)
     h = jac.T @ jac
     h += 1e-9 * max(float(np.trace(h)), 1e-12) * np.eye(len(h))

@@ -207,10 +207,7 @@ def keep_guess_where_weak(
     Returns:
         The ``(4, 4)`` transform and how many directions were reset.
     """
-    from strep_core._open3d import o3d
-
-    ev = o3d.pipelines.registration.evaluate_registration(source, target, distance, transform)
-    corr = np.asarray(ev.correspondence_set)
+    corr = correspondences(source, target, transform, distance)
     if len(corr) < 3 or not target.has_normals():
         return transform, 0
     dims = 2 if planar else 3
@@ -222,6 +219,17 @@ def keep_guess_where_weak(
     out = np.array(transform, dtype=np.float64)
     out[:dims, 3] -= weak @ (weak.T @ (out[:dims, 3] - np.asarray(guess)[:dims, 3]))
     return out, int(weak.shape[1])
+
+
+def correspondences(
+    source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, transform: np.ndarray, distance: float
+) -> np.ndarray:
+    """``(M, 2)`` (source index, target index) of each source point, moved by ``transform``,
+    whose nearest target point lies within ``distance`` (Open3D's own matching)."""
+    from strep_core._open3d import o3d
+
+    ev = o3d.pipelines.registration.evaluate_registration(source, target, distance, transform)
+    return np.asarray(ev.correspondence_set, dtype=np.int64).reshape(-1, 2)
 
 
 def _icp_stage(
