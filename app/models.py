@@ -8,27 +8,19 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from strep_core.config import RunConfig
+from strep_core.result import OUTPUT_FILES
 
 JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled", "interrupted"]
 
 RESULT_FILES: dict[str, str] = {
-    # public name -> file name inside the job's result folder (an allow-list: never a path join of input)
-    "trajectory.tum": "trajectory.tum",
-    "map.ply": "map.ply",
-    "metrics.json": "metrics.json",
-    "config.json": "config.json",
-    "matches.json": "matches.json",
-    "model.pt": "model.pt",
+    # public name -> file name inside the job's result folder (an allow-list: never a path join of
+    # input): what a run writes (strep_core.result.OUTPUT_FILES) and the job's recording
+    **{name: name for name in OUTPUT_FILES},
     "recording.rrd": "recording.rrd",
 }
+_MEDIA_BY_SUFFIX = {".tum": "text/plain; charset=utf-8", ".json": "application/json"}
 FILE_MEDIA_TYPES: dict[str, str] = {
-    "trajectory.tum": "text/plain; charset=utf-8",
-    "map.ply": "application/octet-stream",
-    "metrics.json": "application/json",
-    "config.json": "application/json",
-    "matches.json": "application/json",
-    "model.pt": "application/octet-stream",
-    "recording.rrd": "application/octet-stream",
+    name: _MEDIA_BY_SUFFIX.get(name[name.rindex(".") :], "application/octet-stream") for name in RESULT_FILES
 }
 
 

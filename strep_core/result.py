@@ -95,6 +95,10 @@ def frame_colors(labels: np.ndarray, num_frames: int) -> np.ndarray:
     return (palette[labels] * 255).astype(np.uint8)
 
 
+OUTPUT_FILES = ("trajectory.tum", "map.ply", "metrics.json", "config.json", "matches.json", "model.pt")
+"""Every file `write_outputs` may write; the service serves these names and no others."""
+
+
 def write_outputs(result: Result, out_dir: str | Path) -> dict[str, Path]:
     """Write the result files of `result` into ``out_dir`` (created); returns them by name."""
     from strep_core.io.writers import write_json, write_ply, write_tum
@@ -116,7 +120,7 @@ def write_outputs(result: Result, out_dir: str | Path) -> dict[str, Path]:
     write_json(files["metrics.json"], result.metrics)
     write_json(files["config.json"], result.config.model_dump(mode="json"))
     matches = result.artifacts.get("matches")
-    if matches is not None:  # the planar-laser front end's verdicts, scores and covariances
+    if matches is not None:  # the front ends' verdicts, scores and covariances
         files["matches.json"] = out / "matches.json"
         write_json(files["matches.json"], matches)
     model = result.artifacts.get("model")
@@ -125,4 +129,5 @@ def write_outputs(result: Result, out_dir: str | Path) -> dict[str, Path]:
 
         files["model.pt"] = out / "model.pt"
         save_model(model, files["model.pt"])
+    assert set(files) <= set(OUTPUT_FILES), sorted(files)
     return files
