@@ -228,13 +228,16 @@ class ScanMatcher:
         *,
         prior: np.ndarray | None = None,
         yaw_cost: Callable[[np.ndarray], np.ndarray] | None = None,
+        exclude: tuple[np.ndarray, float] | None = None,
     ) -> MatchResult:
         """The best source -> target pose on the grid, within the window around ``guess``.
 
         ``prior``: ``(2,)`` expected translation; candidates lose ``prior_weight * (|t - prior| /
         prior_scale)^2`` of score (the bounds lose the least penalty over each node's box);
         ``yaw_cost``: score lost at each heading (radians in, array out; a node loses the least
-        over its yaws)."""
+        over its yaws); ``exclude``: ``(translation (2,), radius)``, no leaf within it at any
+        heading (the runner-up of a search whose best lies there; a node whose box lies inside
+        is dropped, one that reaches out keeps its bound)."""
         p, res = self.params, self.params.resolution
         guess = np.eye(3) if guess is None else np.asarray(guess, dtype=np.float64)
         src = np.asarray(source, dtype=np.float64)[:, :2]
@@ -278,11 +281,20 @@ class ScanMatcher:
             for L in range(self.depth + 1):
                 yaw_pen[L] = np.minimum.reduceat(cost, np.arange(0, self.n_yaw, self._yaw_group(L))).astype(np.int64)
 
+        if exclude is not None:  # the excluded disc in offset cells
+            ex_c = (np.asarray(exclude[0], dtype=np.float64)[:2] - self.center - t0) / res
+            ex_r2 = (float(exclude[1]) / res) ** 2
+
         def score(L: int, yg: np.ndarray, ox: np.ndarray, oy: np.ndarray) -> np.ndarray:
             idx = point_cells(L)[yg] + (ox * size + oy).astype(np.int32)[:, None]
             out = np.take(self.flat[L], idx).sum(1, dtype=np.int64)
             if yaw_pen:
                 out = out - yaw_pen[L][yg]
+            if exclude is not None:  # the box's farthest corner from the disc's centre inside it
+                hi = (1 << L) - 1
+                fx = np.maximum(np.abs(ox - ex_c[0]), np.abs(ox + hi - ex_c[0]))
+                fy = np.maximum(np.abs(oy - ex_c[1]), np.abs(oy + hi - ex_c[1]))
+                out = np.where(fx * fx + fy * fy <= ex_r2, -1, out)
             if pc is None:
                 return out
             hi = (1 << L) - 1

@@ -60,6 +60,34 @@ def test_global_match_prior_breaks_a_corridor_tie() -> None:
     assert _errors(truth, found.pose)[1] <= 0.15
 
 
+def test_the_runner_up_lies_outside_the_excluded_disc() -> None:
+    """A corridor with a doorpost every metre matches itself one post on about as well: with the
+    best peak's disc left out, the runner-up is that alias, outside the disc and nearly as high.
+    In an irregular room the runner-up scores clearly lower (one peak)."""
+    rng = np.random.default_rng(4)
+    x = rng.uniform(-9, 9, 600)
+    walls = np.stack([x, np.where(rng.uniform(size=600) < 0.5, -1.0, 1.0)], 1)
+    posts = np.stack([np.repeat(np.arange(-9.0, 10.0), 8), np.tile(np.linspace(0.6, 1.0, 8), 19)], 1)
+    corridor = np.concatenate([walls, posts, posts * [1, -1]])
+    truth = g.se2_from_xytheta(np.array([[0.3, 0.0, 0.0]]))[0]
+    source = g.apply(g.inverse(truth), corridor[np.abs(corridor[:, 0]) < 4.0])
+    matcher = ScanMatcher(corridor, dataclasses.replace(PARAMS, window=1.5, yaw_window=0.2))
+    best = matcher.match(source)
+    second = matcher.match(source, exclude=(best.pose[:2, 2], 0.4))
+    gap = np.hypot(*(second.pose[:2, 2] - best.pose[:2, 2]))
+    assert 0.8 < gap < 1.2, gap  # the next post
+    assert best.score - 0.1 <= second.score <= best.score
+    target = _room(rng)
+    truth = g.se2_from_xytheta(np.array([[0.3, -0.2, 0.4]]))[0]
+    source = g.apply(g.inverse(truth), _room(rng))
+    matcher = ScanMatcher(target, PARAMS)
+    best = matcher.match(source)
+    assert _errors(truth, best.pose)[1] <= 0.08
+    second = matcher.match(source, exclude=(best.pose[:2, 2], 0.4))
+    assert np.hypot(*(second.pose[:2, 2] - best.pose[:2, 2])) > 0.4
+    assert second.score < best.score - 0.2
+
+
 def test_a_heading_cost_picks_among_equal_headings() -> None:
     """A square room scores the same at every quarter turn; the heading cost of the branch and
     bound (score lost per heading) decides, and the search stays exact."""

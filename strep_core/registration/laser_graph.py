@@ -62,6 +62,10 @@ class LoopParams:
             more closures on freiburg-campus at 1.5 times the cost).
         neighbours: closures within this many searches of travel of each other check each
             other (`consistent`).
+        runner_up: a closure's runner-up is the best pose farther than this many grid cells
+            from it (4 field sigmas: off the best peak's shoulder); 0: no runner-up search.
+        runner_margin: a runner-up that refines to another place scoring within this of the
+            best makes the closure an alias, left out.
     """
 
     every: float
@@ -73,6 +77,8 @@ class LoopParams:
     yaw_window: float = float(np.radians(30.0))
     passes: int = 2
     neighbours: float = 20.0
+    runner_up: float = 8.0
+    runner_margin: float = 0.05
 
 
 def loop_params(slam: LaserSlamParams, scale: float) -> LoopParams:
@@ -171,7 +177,7 @@ def search_loops(
                         continue
                 searched[(sm.first, k)] = guess
             tried += 1
-            edge = _close(frames[k], guess, sm, poses[sm.anchor], k, radius, slam, cache, params.yaw_window)
+            edge = _close(frames[k], guess, sm, poses[sm.anchor], k, radius, slam, cache, params)
             if edge is not None and edge.score >= floor and (best is None or edge.score > best.score):
                 best = edge
         if best is not None:
@@ -188,10 +194,11 @@ def _close(
     radius: float,
     slam: LaserSlamParams,
     cache: dict[int, tuple[cKDTree, np.ndarray]],
-    yaw_window: float = float(np.radians(30.0)),
+    loop: LoopParams,
 ) -> Edge | None:
     """One scan against one finished submap; ``None`` unless one clear peak."""
     res = slam.resolution
+    yaw_window = loop.yaw_window
     target = sm.cloud(res)
     pts = np.asarray(points, dtype=np.float64)[:, :2]
     params = ScanMatchParams(
@@ -202,7 +209,8 @@ def _close(
     # pose in the window score nothing anywhere, so the branch and bound leaves them out (the
     # scores below count every point; docs/design/laser-slam.md)
     reach = np.linalg.norm(target - guess[:2, 2], axis=1).max() + np.sqrt(2) * radius + 3 * params.field_sigma
-    found = matcher.match(pts[np.linalg.norm(pts, axis=1) <= reach], guess)
+    reaching = pts[np.linalg.norm(pts, axis=1) <= reach]
+    found = matcher.match(reaching, guess)
     found = dataclasses.replace(found, score=matcher.evaluate(pts, found.pose))
     if sm.first not in cache:
         tree = cKDTree(target)
@@ -222,12 +230,37 @@ def _close(
     eig = np.linalg.eigvalsh(info[:2, :2])
     if eig[0] < slam.weak_ratio * max(eig[1], 1e-12):  # a corridor: no closure along its axis
         return None
+    if loop.runner_up > 0 and _aliased(matcher, reaching, pts, pose, score, guess, tree, target, normals, res, loop):
+        return None
     rel = g.relative(anchor, pose)
     floor = np.diag([(0.5 * res) ** 2, (0.5 * res) ** 2, np.radians(0.25) ** 2])
     cov = np.linalg.pinv(info + np.diag([1e-6, 1e-6, 1e-6])) + floor
     rot = np.eye(3)
     rot[:2, :2] = pose[:2, :2].T
     return Edge(sm.anchor, k, rel, rot @ cov @ rot.T, score, loop=True)
+
+
+def _aliased(
+    matcher: ScanMatcher,
+    reaching: np.ndarray,
+    pts: np.ndarray,
+    pose: np.ndarray,
+    score: float,
+    guess: np.ndarray,
+    tree: cKDTree,
+    target: np.ndarray,
+    normals: np.ndarray,
+    res: float,
+    loop: LoopParams,
+) -> bool:
+    """Whether the best place off the closure's peak scores about as high (Olson's ambiguity
+    test): the branch and bound again with the peak's disc left out, the runner-up refined."""
+    second = matcher.match(reaching, guess, exclude=(pose[:2, 2], loop.runner_up * res))
+    if second.score <= 0:
+        return False
+    other, _, _ = refine(pts, tree, target, normals, second.pose, 3 * res)
+    s2 = max(matcher.evaluate(pts, other), matcher.evaluate(pts, second.pose))
+    return bool(np.linalg.norm(other[:2, 2] - pose[:2, 2]) > 2 * res and s2 >= score - loop.runner_margin)
 
 
 def consistent(
