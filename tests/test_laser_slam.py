@@ -348,6 +348,16 @@ def test_a_log_keyframed_by_distance_shows_its_spacing() -> None:
     for kept in (g.se2_from_xytheta(np.array([1.5, 0.0, 0.01])), g.se2_from_xytheta(np.array([0.1, 0.0, 0.5]))):
         np.testing.assert_array_equal(keyframe_velocity(kept, spacing), kept)  # longer, or turning
     np.testing.assert_array_equal(keyframe_velocity(short, None), short)
+    # a short step against the direction of travel is noise about a slide: lengthened along the
+    # travel, not walked back at the spacing (infinite-corridor scans 107-111)
+    forward = np.array([1.0, 0.0])
+    back = g.se2_from_xytheta(np.array([-0.06, 0.01, 0.0]))
+    np.testing.assert_allclose(keyframe_velocity(back, spacing, forward)[:2, 2], spacing * forward)
+    np.testing.assert_allclose(
+        keyframe_velocity(back, spacing)[:2, 2],
+        [-spacing * 0.06 / np.hypot(0.06, 0.01), spacing * 0.01 / np.hypot(0.06, 0.01)],
+    )
+    np.testing.assert_allclose(keyframe_velocity(short, spacing, forward), keyframe_velocity(short, spacing))
     anchor = g.se2_from_xytheta(np.array([1.0, 2.0, 0.4]))
     stuck = anchor @ g.se2_from_xytheta(np.array([0.1, 0.0, 0.01]))
     ahead = anchor @ g.se2_from_xytheta(np.array([spacing, 0.0, 0.01]))

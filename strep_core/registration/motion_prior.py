@@ -31,10 +31,13 @@ def yaw_cost(pred: np.ndarray, anchor: np.ndarray, weight: float) -> Callable[[n
     return cost
 
 
-def keyframe_velocity(velocity: np.ndarray, spacing: float | None) -> np.ndarray:
+def keyframe_velocity(velocity: np.ndarray, spacing: float | None, travel: np.ndarray | None = None) -> np.ndarray:
     """``velocity``, its straight step (under 10 degrees) lengthened to the keyframe ``spacing``
     if shorter. Lengthening only: carried at the spacing both ways, freiburg-campus whole went
-    0.42 -> 2.03 m (round 7)."""
+    0.42 -> 2.03 m (round 7). ``travel``: the unit direction (in the scan's frame) of the last
+    long straight step; a short step pointing against it is noise about a slide, and is
+    lengthened along ``travel`` instead (infinite-corridor scans 107-111 walked back 5 m along
+    their own lengthened noise; docs/design/laser-slam.md, round 10)."""
     step = float(np.hypot(*velocity[:2, 2]))
     if (
         spacing is None
@@ -44,6 +47,9 @@ def keyframe_velocity(velocity: np.ndarray, spacing: float | None) -> np.ndarray
     ):
         return velocity
     out = velocity.copy()
+    if travel is not None and float(velocity[:2, 2] @ travel) < 0:
+        out[:2, 2] = spacing * travel
+        return out
     out[:2, 2] *= spacing / step
     return out
 

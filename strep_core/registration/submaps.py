@@ -285,6 +285,7 @@ def local_slam(
     motion = _Motion(p)
     submaps: list[Submap] = [Submap(0)]
     velocity = np.eye(3)
+    travel: np.ndarray | None = None  # the unit direction of the last long straight step
     last_ok = 0
     local = [_cap(f, p.max_range) for f in frames]
 
@@ -313,7 +314,7 @@ def local_slam(
         # constant velocity; in a keyframed log a straight step that slid short along a corridor
         # is not the speed (infinite-corridor[0:100] 3.78 -> 0.49 m; laser-slam.md, round 7)
         spacing = motion.straight_step()
-        pred = poses[k - 1] @ keyframe_velocity(velocity, spacing)
+        pred = poses[k - 1] @ keyframe_velocity(velocity, spacing, travel)
         step_bound, turn_bound = motion.bounds()
         # after failures the motion since the last accepted scan may be as many bounds long
         n = k - last_ok
@@ -327,6 +328,9 @@ def local_slam(
             since = g.relative(poses[last_ok], poses[k])
             motion.add(float(np.hypot(*since[:2, 2])) / n, abs(float(np.arctan2(since[1, 0], since[0, 0]))) / n)
             velocity = rel
+            length = float(np.hypot(*rel[:2, 2]))
+            if spacing is not None and length >= 0.5 * spacing and abs(g.so2_angle(rel[:2, :2])) < STRAIGHT:
+                travel = rel[:2, 2] / length
             last_ok = k
         insert(k)
         if on_scan is not None:
