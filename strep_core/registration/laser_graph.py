@@ -158,7 +158,7 @@ def search_loops(
             on_scan(k)
         pos = est[k][:2, 2]
         near = tree.query_ball_point(pos, params.max_radius + 0.5 * params.max_radius)
-        best: Edge | None = None
+        found: list[tuple[Edge, Callable[[], bool]]] = []
         near = [s for s in near if ends[s] <= k - params.min_gap]
         near.sort(key=lambda s: float(np.linalg.norm(centres[s] - pos)))
         for s in near[: params.candidates]:
@@ -177,11 +177,15 @@ def search_loops(
                         continue
                 searched[(sm.first, k)] = guess
             tried += 1
-            edge = _close(frames[k], guess, sm, poses[sm.anchor], k, radius, slam, cache, params)
-            if edge is not None and edge.score >= floor and (best is None or edge.score > best.score):
-                best = edge
-        if best is not None:
-            edges.append(best)
+            closed = _close(frames[k], guess, sm, poses[sm.anchor], k, radius, slam, cache, params)
+            if closed is not None and closed[0].score >= floor:
+                found.append(closed)
+        # the best-scoring closure that is no alias (the runner-up test, the dearest, runs on the
+        # candidates in order of score until one passes: about one a scan)
+        for edge, aliased in sorted(found, key=lambda c: -c[0].score):
+            if not aliased():
+                edges.append(edge)
+                break
     return edges, tried
 
 
@@ -195,8 +199,9 @@ def _close(
     slam: LaserSlamParams,
     cache: dict[int, tuple[cKDTree, np.ndarray]],
     loop: LoopParams,
-) -> Edge | None:
-    """One scan against one finished submap; ``None`` unless one clear peak."""
+) -> tuple[Edge, Callable[[], bool]] | None:
+    """One scan against one finished submap; ``None`` unless one clear peak, else the closure
+    and its runner-up test (`_aliased`, run on demand)."""
     res = slam.resolution
     yaw_window = loop.yaw_window
     target = sm.cloud(res)
@@ -230,14 +235,15 @@ def _close(
     eig = np.linalg.eigvalsh(info[:2, :2])
     if eig[0] < slam.weak_ratio * max(eig[1], 1e-12):  # a corridor: no closure along its axis
         return None
-    if loop.runner_up > 0 and _aliased(matcher, reaching, pts, pose, score, guess, tree, target, normals, res, loop):
-        return None
     rel = g.relative(anchor, pose)
     floor = np.diag([(0.5 * res) ** 2, (0.5 * res) ** 2, np.radians(0.25) ** 2])
     cov = np.linalg.pinv(info + np.diag([1e-6, 1e-6, 1e-6])) + floor
     rot = np.eye(3)
     rot[:2, :2] = pose[:2, :2].T
-    return Edge(sm.anchor, k, rel, rot @ cov @ rot.T, score, loop=True)
+    edge = Edge(sm.anchor, k, rel, rot @ cov @ rot.T, score, loop=True)
+    if loop.runner_up <= 0:
+        return edge, lambda: False
+    return edge, lambda: _aliased(matcher, reaching, pts, pose, score, guess, tree, target, normals, res, loop)
 
 
 def _aliased(
