@@ -3,9 +3,10 @@
 After Cartographer's global SLAM and Karto: every few metres a scan is searched against the
 finished submaps near its estimate (branch and bound, `strep_core.scanmatch`), within a radius
 that grows with the uncertainty accumulated along the chain since the submap; a candidate is
-verified (a high score, one peak: the refinement from the prediction must agree) before it is
-used, and the back end is robust to the wrong ones that remain: GTSAM's graduated
-non-convexity over the loop factors, the chain's factors known inliers (measurements:
+verified (a high score, one peak: the refinement from the prediction must agree; no runner-up
+elsewhere in the window as high, which a repeated corridor has) before it is used, and the
+back end is robust to the wrong ones that remain: GTSAM's graduated non-convexity over the
+loop factors, the chain's factors known inliers (measurements:
 docs/design/laser-slam.md).
 
 Conventions: poses ``(3, 3)`` SE(2) local -> world; covariances ``(3, 3)`` over (x, y, theta)
@@ -64,6 +65,8 @@ class LoopParams:
             other (`consistent`).
         runner_up: a closure's runner-up is the best pose farther than this many grid cells
             from it (4 field sigmas: off the best peak's shoulder); 0: no runner-up search.
+            infinite-corridor whole, heading 0: wrong closures 46 -> 9 (docs/design/laser-slam.md,
+            round 10).
         runner_margin: a runner-up that refines to another place scoring within this of the
             best makes the closure an alias, left out.
     """
