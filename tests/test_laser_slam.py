@@ -204,6 +204,24 @@ def test_the_loop_search_reaches_past_the_nearest_submaps() -> None:
     assert np.hypot(*off[:2, 2]) < 2 * res and abs(np.arctan2(off[1, 0], off[0, 0])) < np.radians(1.0)
 
 
+def _revisit(
+    world: np.ndarray, estimate: np.ndarray, truth: np.ndarray, *, first: float = 12.0, last: float = 12.0
+) -> tuple[np.ndarray, list[np.ndarray], list[Match], Submap]:
+    """Sixty scans: the first ten see a place (reach ``first``) and make a finished submap, the
+    robot is then away, and the last scan revisits it at ``truth`` (reach ``last``) while the
+    chain puts it at ``estimate``. Returns poses, frames, matches and the submap."""
+    poses = np.stack([g.se2_from_xytheta(np.array([0.05 * k + 100.0 * (k >= 10), 0.0, 0.0])) for k in range(60)])
+    poses[-1] = estimate
+    frames = [_scan(world, p, reach=first) for p in poses]
+    frames[-1] = _scan(world, truth, reach=last)
+    cov = np.diag([0.02**2, 0.02**2, np.radians(0.5) ** 2])
+    matches = [Match("accepted", 0.8, p, cov) for p in poses]
+    target = Submap(0, finished=True)
+    for k in range(10):
+        target.insert(g.apply(poses[k], frames[k]), k)
+    return poses, frames, matches, target
+
+
 def test_a_closure_along_a_corridor_of_doorposts_is_an_alias() -> None:
     """A corridor with a doorpost every 1.5 m: a scan revisiting it, the chain drifted by 0.6 m
     along it, matches its true place and the places one post on about as well. The closure
@@ -215,19 +233,11 @@ def test_a_closure_along_a_corridor_of_doorposts_is_an_alias() -> None:
     stub = np.linspace(0.7, 1.0, 7)
     posts = np.array([[px, sy * y] for px in np.arange(-12.0, 12.0, 1.5) for y in stub for sy in (-1, 1)])
     world = np.concatenate([walls, posts]) + rng.normal(0, 0.005, (len(walls) + len(posts), 2))
-    k_frames = 60
     truth = g.se2_from_xytheta(np.array([0.4, 0.0, 0.0]))
     estimate = truth @ g.se2_from_xytheta(np.array([0.6, 0.0, 0.0]))
-    poses = np.stack([g.se2_from_xytheta(np.array([0.05 * k + 100.0 * (k >= 10), 0.0, 0.0])) for k in range(k_frames)])
-    poses[-1] = estimate
-    frames = [_scan(world, p, reach=9.0) for p in poses]  # the first pass saw farther
-    frames[-1] = _scan(world, truth, reach=4.0)
-    cov = np.diag([0.02**2, 0.02**2, np.radians(0.5) ** 2])
-    matches = [Match("accepted", 0.8, p, cov) for p in poses]
+    # the first pass saw farther than the revisit
+    poses, frames, matches, target = _revisit(world, estimate, truth, first=9.0, last=4.0)
     slam = LaserSlamParams(resolution=0.05, max_range=9.0, window=3.0)
-    target = Submap(0, finished=True)
-    for k in range(10):
-        target.insert(g.apply(poses[k], frames[k]), k)
     params = dataclasses.replace(lg.loop_params(slam, 2.0), every=1.0)
     plain, _ = lg.search_loops(frames, poses, matches, [target], slam, dataclasses.replace(params, runner_up=0.0))
     assert len(plain) == 1  # one clear peak locally, a score above the floor: a closure
@@ -270,18 +280,10 @@ def test_a_second_loop_pass_from_the_graph_reaches_a_drifted_revisit() -> None:
     in the submap's own frame, agrees with the truth."""
     rng = np.random.default_rng(7)
     world = _walls(rng)
-    k_frames = 60
     truth = g.se2_from_xytheta(np.array([1.0, -1.0, 0.2]))
-    poses = np.stack([g.se2_from_xytheta(np.array([0.05 * k + 100.0 * (k >= 10), 0.0, 0.0])) for k in range(k_frames)])
-    frames = [_scan(world, p) for p in poses]
-    poses[-1] = g.se2_from_xytheta(np.array([40.0, 0.0, 0.0]))  # the local chain's drifted estimate
-    frames[-1] = _scan(world, truth)
-    cov = np.diag([0.02**2, 0.02**2, np.radians(0.5) ** 2])
-    matches = [Match("accepted", 0.8, p, cov) for p in poses]
+    drifted = g.se2_from_xytheta(np.array([40.0, 0.0, 0.0]))  # the local chain's drifted estimate
+    poses, frames, matches, target = _revisit(world, drifted, truth)
     slam = LaserSlamParams(resolution=0.05, max_range=12.0, window=3.0)
-    target = Submap(0, finished=True)
-    for k in range(10):
-        target.insert(g.apply(poses[k], frames[k]), k)
     params = dataclasses.replace(lg.loop_params(slam, 3.0), every=1.0)
     searched: dict = {}
     first, _ = lg.search_loops(frames, poses, matches, [target], slam, params, searched=searched)
@@ -293,7 +295,7 @@ def test_a_second_loop_pass_from_the_graph_reaches_a_drifted_revisit() -> None:
     # a pair whose guess has not moved by half the window is not searched again
     _, again = lg.search_loops(frames, poses, matches, [target], slam, params, estimates=estimates, searched=searched)
     assert first == [] and again == 0
-    assert len(second) == 1 and tried == 1 and (second[0].i, second[0].j) == (0, k_frames - 1)
+    assert len(second) == 1 and tried == 1 and (second[0].i, second[0].j) == (0, len(poses) - 1)
     off = g.relative(g.relative(poses[0], truth), second[0].transform)
     assert np.hypot(*off[:2, 2]) < 0.1 and abs(np.arctan2(off[1, 0], off[0, 0])) < np.radians(1.0)
 

@@ -410,12 +410,18 @@ def _match(
     if two_peaks and score_b >= floor and near:
         verdict, pose, info, score = "ambiguous", pose_b, info_b, score_b
     sums: list[tuple[float, float]] = []
+    latest: list[ScanMatcher] = []
+
+    def on_latest(pose: np.ndarray) -> float:
+        """The score of ``pose`` against the latest scan alone (its field built once)."""
+        if not latest:
+            latest.append(ScanMatcher(recent, sm_params, center=anchor[:2, 2]))
+        return latest[0].evaluate(points, pose)
 
     def latest_sums() -> tuple[float, float]:
-        """Each peak's score against the submap plus against the latest scan alone (built once)."""
+        """Each peak's score against the submap plus against the latest scan alone."""
         if not sums:
-            latest = ScanMatcher(recent, sm_params, center=anchor[:2, 2])
-            sums.append((latest.evaluate(points, pose_a) + score_a, latest.evaluate(points, pose_b) + score_b))
+            sums.append((on_latest(pose_a) + score_a, on_latest(pose_b) + score_b))
         return sums[0]
 
     if recent is not None and score < p.weak_score * floor / p.min_score and verdict == "accepted":
@@ -449,8 +455,7 @@ def _match(
                 points, pred, yaw_cost=yaw_cost(pred, anchor, p.prior_weight)
             )
             pose_c, _, _ = refine(points, tree, target, normals, found_c.pose, 3 * res)
-            latest = ScanMatcher(recent, sm_params, center=anchor[:2, 2])
-            if latest.evaluate(points, pose_c) + matcher.evaluate(points, pose_c) > max(sum_a, sum_b):
+            if on_latest(pose_c) + matcher.evaluate(points, pose_c) > max(sum_a, sum_b):
                 bridge = pose_c
         return Match("failed", score, bridge, wide, window)
     motion.scores = [*motion.scores, score][-p.history :]
