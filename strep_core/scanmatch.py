@@ -83,28 +83,29 @@ class MatchResult:
     exact: bool
 
 
-def _sliding_max(a: np.ndarray, lo: int, hi: int, axis: int) -> np.ndarray:
-    """``out[i] = max(a[i + lo .. i + hi])`` along ``axis`` (zero beyond the array), same shape."""
-    w = hi - lo + 1
-    n = a.shape[axis]
-    pad = [(0, 0), (0, 0)]
-    pad[axis] = (max(0, -lo), max(0, hi) + 1)
-    b = np.pad(a, pad)
-    # sparse doubling: b holds max over windows of width `span` starting at each index
-    span = 1
-    while 2 * span <= w:
-        sl = [slice(None), slice(None)]
-        sl[axis] = slice(span, None)
-        head = [slice(None), slice(None)]
-        head[axis] = slice(0, b.shape[axis] - span)
-        b = np.maximum(b[tuple(head)], b[tuple(sl)])
-        span *= 2
-    start = max(0, -lo) + lo  # index in b of window start for i = 0
-    sl1 = [slice(None), slice(None)]
-    sl2 = [slice(None), slice(None)]
-    sl1[axis] = slice(start, start + n)
-    sl2[axis] = slice(start + w - span, start + w - span + n)
-    return np.maximum(b[tuple(sl1)], b[tuple(sl2)])
+def _dilate(a: np.ndarray, width: int) -> np.ndarray:
+    """The max over every window of ``width`` cells along both axes, zero beyond ``a``: the
+    full result, ``width - 1`` cells larger than ``a`` on each axis (``out[m]`` is the max of
+    ``a[m - width + 1 .. m]``); one zero border and sparse doubling, no padding per pass."""
+    if width <= 1:
+        return a.copy()
+    n0, n1 = a.shape
+    out = np.zeros((n0 + 2 * (width - 1), n1 + 2 * (width - 1)), dtype=a.dtype)
+    out[width - 1 : width - 1 + n0, width - 1 : width - 1 + n1] = a
+    for axis in (0, 1):
+        n = a.shape[axis] + width - 1  # the result's length along this axis
+        b, span = out, 1
+        while 2 * span <= width:
+            head = [slice(None), slice(None)]
+            tail = [slice(None), slice(None)]
+            head[axis], tail[axis] = slice(0, b.shape[axis] - span), slice(span, None)
+            b = np.maximum(b[tuple(head)], b[tuple(tail)])
+            span *= 2
+        first = [slice(None), slice(None)]
+        second = [slice(None), slice(None)]
+        first[axis], second[axis] = slice(0, n), slice(width - span, width - span + n)
+        out = np.maximum(b[tuple(first)], b[tuple(second)])
+    return out
 
 
 def _rot(yaw: np.ndarray) -> np.ndarray:
@@ -181,6 +182,7 @@ class ScanMatcher:
                 ok = (rows >= 0) & (rows < size) & (cols >= 0) & (cols < size)
                 np.maximum.at(field.ravel(), rows[ok] * size + cols[ok], vals[ok])
             self._block = (field[lo[0] : hi[0], lo[1] : hi[1]], lo)
+            self._level = (self._block[0], lo, 0, 0)  # the last pooled depth's block: the field's
         self.grids = [field]
         self.flat = [field.ravel()]
         self.size = size
@@ -190,17 +192,21 @@ class ScanMatcher:
 
     def _pool(self) -> None:
         """The max-pooled grids of every depth, computed over the target's block only: a pooled
-        cell is nonzero only where its box, widened by the dilation, reaches the block."""
+        cell is nonzero only where its box, widened by the dilation, reaches the block. Each
+        depth pools the one before over the difference of their boxes (a max over ``[lo, hi]``
+        is a max over ``[lo', hi']`` of a max over ``[lo - lo', hi - hi']``): exact, and a
+        third fewer passes than pooling the field at every depth."""
         size = self.size
         for L in range(len(self.grids), self.depth + 1):
             lo_, hi_ = -self.dil[L], (1 << L) - 1 + self.dil[L]
             pooled = np.zeros((size, size), dtype=np.uint8)
             if self._block is not None:
-                occ, lo = self._block
-                # rows lo - hi_ .. lo + n - 1 - lo_ of the pooled grid read the block
-                padded = np.pad(occ, ((hi_, -lo_), (hi_, -lo_)))
-                block = _sliding_max(_sliding_max(padded, lo_, hi_, 0), lo_, hi_, 1)
-                at = lo - hi_
+                prev, at_prev, lo_prev, hi_prev = self._level
+                # cell at_prev + i of the previous depth's block is the window's output index i + d_hi
+                d_lo, d_hi = lo_ - lo_prev, hi_ - hi_prev
+                block = _dilate(prev, d_hi - d_lo + 1)
+                at = at_prev - d_hi
+                self._level = (block, at, lo_, hi_)
                 a = np.maximum(at, 0)
                 b = np.minimum(at + np.array(block.shape), size)
                 if (b > a).all():

@@ -135,3 +135,26 @@ def test_icp_uses_the_global_match_on_2d_data_only(shared_data) -> None:
     assert yaw_err <= 1.0 and t_err <= 0.05, (yaw_err, t_err)
     off = reg.resolve_params(seq, ClassicalConfig(scanmatch={"consecutive": "off"}))
     assert off.global_match is None
+
+
+def test_each_depth_pools_the_field_over_its_widened_box() -> None:
+    """Every pooled grid is, cell by cell, the max of the finest field over the node's box
+    widened by the depth's dilation (``[-dil, 2^L - 1 + dil]`` on both axes): the bound the
+    branch and bound relies on, here checked by brute force on a small room; each depth is
+    computed from the one before, so an error at one depth would carry to all that follow."""
+    rng = np.random.default_rng(7)
+    params = dataclasses.replace(PARAMS, window=0.8, resolution=0.1, max_range=4.0)
+    matcher = ScanMatcher(_room(rng, 150), params)
+    matcher.match(_room(rng, 150))
+    field = matcher.grids[0].astype(np.int64)
+    assert matcher.depth >= 3 and max(matcher.dil) > 0  # the dilated depths are exercised
+    n = field.shape[0]
+    for L in range(1, matcher.depth + 1):
+        lo, hi = -matcher.dil[L], (1 << L) - 1 + matcher.dil[L]
+        padded = np.pad(field, ((-lo, hi), (-lo, hi)))
+        want = np.zeros_like(field)
+        for dx in range(hi - lo + 1):
+            for dy in range(hi - lo + 1):
+                want = np.maximum(want, padded[dx : dx + n, dy : dy + n])
+        assert np.array_equal(matcher.grids[L], want), L
+    assert (matcher.grids[matcher.depth] >= field).all() and matcher.grids[matcher.depth].max() == field.max()
