@@ -194,8 +194,9 @@ class ScanMatcher:
         """The max-pooled grids of every depth, computed over the target's block only: a pooled
         cell is nonzero only where its box, widened by the dilation, reaches the block. Each
         depth pools the one before over the difference of their boxes (a max over ``[lo, hi]``
-        is a max over ``[lo', hi']`` of a max over ``[lo - lo', hi - hi']``): exact, and a
-        third fewer passes than pooling the field at every depth."""
+        is a max over ``[lo', hi']`` of a max over ``[lo - lo', hi - hi']``): exact, and
+        shorter windows than pooling the field at every depth (docs/design/laser-slam.md,
+        round 11)."""
         size = self.size
         for L in range(len(self.grids), self.depth + 1):
             lo_, hi_ = -self.dil[L], (1 << L) - 1 + self.dil[L]
