@@ -26,7 +26,9 @@ from app.services.executors import LocalExecutor, RayExecutor, forwarded_env, ra
 
 ray = pytest.importorskip("ray")
 
-pytestmark = pytest.mark.timeout(120)
+# generous: a Ray worker imports torch and Open3D in a fresh process, minutes on a loaded
+# machine (two CPU-bound runs beside the suite on 2 cores took past 60 s); idle it is seconds
+pytestmark = pytest.mark.timeout(420)
 
 LONG = 100_000  # iterations no test waits for: such jobs are always cancelled or killed
 
@@ -34,7 +36,7 @@ LONG = 100_000  # iterations no test waits for: such jobs are always cancelled o
 # ---- helpers ----------------------------------------------------------------
 
 
-def wait_job(client: TestClient, job_id: str, *, timeout: float = 60) -> dict[str, Any]:
+def wait_job(client: TestClient, job_id: str, *, timeout: float = 180) -> dict[str, Any]:
     def final() -> dict[str, Any] | None:
         job = client.get(f"/api/jobs/{job_id}").json()
         return job if job["status"] in FINAL else None
@@ -57,7 +59,7 @@ def started_worker(client: TestClient, job_id: str) -> int:
         iterated = any(e.kind == "iteration" for e in store.events_after(job_id, 0))
         return job["pid"] if job["pid"] and iterated else None
 
-    return wait_until(ready, what=f"an iteration of {job_id}")
+    return wait_until(ready, timeout=180, what=f"an iteration of {job_id}")
 
 
 # ---- fixtures ------------------------------------------------------------------------------------
