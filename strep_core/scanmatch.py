@@ -83,29 +83,24 @@ class MatchResult:
     exact: bool
 
 
-def _dilate(a: np.ndarray, width: int) -> np.ndarray:
-    """The max over every window of ``width`` cells along both axes, zero beyond ``a``: the
-    full result, ``width - 1`` cells larger than ``a`` on each axis (``out[m]`` is the max of
-    ``a[m - width + 1 .. m]``); one zero border and sparse doubling, no padding per pass."""
+def _dilate(a: np.ndarray, width: int, axis: int) -> np.ndarray:
+    """The max over every window of ``width`` cells along ``axis``, zero beyond ``a``: the full
+    result, ``width - 1`` cells longer than ``a`` at each end (``out[m]`` is the max of
+    ``a[m - width + 1 .. m]``); one zero border, then sparse doubling."""
     if width <= 1:
-        return a.copy()
-    n0, n1 = a.shape
-    out = np.zeros((n0 + 2 * (width - 1), n1 + 2 * (width - 1)), dtype=a.dtype)
-    out[width - 1 : width - 1 + n0, width - 1 : width - 1 + n1] = a
-    for axis in (0, 1):
-        n = a.shape[axis] + width - 1  # the result's length along this axis
-        b, span = out, 1
-        while 2 * span <= width:
-            head = [slice(None), slice(None)]
-            tail = [slice(None), slice(None)]
-            head[axis], tail[axis] = slice(0, b.shape[axis] - span), slice(span, None)
-            b = np.maximum(b[tuple(head)], b[tuple(tail)])
-            span *= 2
-        first = [slice(None), slice(None)]
-        second = [slice(None), slice(None)]
-        first[axis], second[axis] = slice(0, n), slice(width - span, width - span + n)
-        out = np.maximum(b[tuple(first)], b[tuple(second)])
-    return out
+        return a
+    pad = [(0, 0), (0, 0)]
+    pad[axis] = (width - 1, width - 1)
+    b, span = np.pad(a, pad), 1
+    n = a.shape[axis] + width - 1  # the result's length along the axis
+
+    def part(start: int, stop: int) -> tuple[slice, ...]:
+        return (slice(start, stop),) if axis == 0 else (slice(None), slice(start, stop))
+
+    while 2 * span <= width:
+        b = np.maximum(b[part(0, b.shape[axis] - span)], b[part(span, None)])
+        span *= 2
+    return np.maximum(b[part(0, n)], b[part(width - span, width - span + n)])
 
 
 def _rot(yaw: np.ndarray) -> np.ndarray:
@@ -182,7 +177,7 @@ class ScanMatcher:
                 ok = (rows >= 0) & (rows < size) & (cols >= 0) & (cols < size)
                 np.maximum.at(field.ravel(), rows[ok] * size + cols[ok], vals[ok])
             self._block = (field[lo[0] : hi[0], lo[1] : hi[1]], lo)
-            self._level = (self._block[0], lo, 0, 0)  # the last pooled depth's block: the field's
+            self._level = (self._block[0], lo)  # the last pooled depth's block and its origin: the field's
         self.grids = [field]
         self.flat = [field.ravel()]
         self.size = size
@@ -199,21 +194,26 @@ class ScanMatcher:
         round 11)."""
         size = self.size
         for L in range(len(self.grids), self.depth + 1):
-            lo_, hi_ = -self.dil[L], (1 << L) - 1 + self.dil[L]
             pooled = np.zeros((size, size), dtype=np.uint8)
             if self._block is not None:
-                prev, at_prev, lo_prev, hi_prev = self._level
+                prev, at_prev = self._level
+                (lo_prev, hi_prev), (lo_, hi_) = self._box(L - 1), self._box(L)
                 # cell at_prev + i of the previous depth's block is the window's output index i + d_hi
                 d_lo, d_hi = lo_ - lo_prev, hi_ - hi_prev
-                block = _dilate(prev, d_hi - d_lo + 1)
+                block = _dilate(_dilate(prev, d_hi - d_lo + 1, 0), d_hi - d_lo + 1, 1)
                 at = at_prev - d_hi
-                self._level = (block, at, lo_, hi_)
+                self._level = (block, at)
                 a = np.maximum(at, 0)
                 b = np.minimum(at + np.array(block.shape), size)
                 if (b > a).all():
                     pooled[a[0] : b[0], a[1] : b[1]] = block[a[0] - at[0] : b[0] - at[0], a[1] - at[1] : b[1] - at[1]]
             self.grids.append(pooled)
             self.flat.append(pooled.ravel())
+
+    def _box(self, L: int) -> tuple[int, int]:
+        """The cells a depth-L node's bound pools along each axis, from its box's corner: the
+        box widened by the depth's dilation."""
+        return -self.dil[L], (1 << L) - 1 + self.dil[L]
 
     def _yaw_group(self, L: int) -> int:
         """Yaws per node at depth L: the group doubles with the box from depth 2 on."""
