@@ -158,8 +158,10 @@ def run_scene(
     cancel: CancelFlag | None = None,
 ) -> Result:
     """Run ``config.method`` on ``scene``, whose frames are already selected (`run`, `run_input`)."""
+    from strep_core.allocator import keep_freed_memory
     from strep_core.resolve import resolve
 
+    keep_freed_memory()  # numpy's large temporaries reused, not faulted in again (allocator.py)
     sink = sink or NullSink()
     info = get(config.method)
     started = time.perf_counter()
