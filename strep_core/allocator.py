@@ -33,4 +33,6 @@ def keep_freed_memory() -> bool:
     except (OSError, AttributeError):
         return False
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
-    return bool(mallopt(M_MMAP_THRESHOLD, MMAP_MIB << 20)) & bool(mallopt(M_TRIM_THRESHOLD, TRIM_MIB << 20))
+    took_mmap = mallopt(M_MMAP_THRESHOLD, MMAP_MIB << 20)  # both are set, whatever the first answers
+    took_trim = mallopt(M_TRIM_THRESHOLD, TRIM_MIB << 20)
+    return bool(took_mmap and took_trim)
