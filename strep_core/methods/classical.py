@@ -254,6 +254,7 @@ def _laser_multiway(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
             "loops_kept": out.loops_kept,
             "loops_rejected": len(out.loops) - out.loops_kept,
             "loops_inconsistent": out.loops_inconsistent,
+            "spacing_priors": len(out.priors),
         },
     )
 

@@ -24,6 +24,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from strep_core import geometry as g
+from strep_core.registration.motion_prior import STRAIGHT, keyframe_spacing
 from strep_core.registration.submaps import LaserSlamParams, Match, Submap, normals_2d, refine
 from strep_core.scanmatch import ScanMatcher, ScanMatchParams
 
@@ -38,6 +39,16 @@ class Edge:
     covariance: np.ndarray
     score: float = 1.0
     loop: bool = False
+
+
+@dataclass(frozen=True)
+class StepPrior:
+    """A soft prior on the distance between scans ``i`` and ``j``: ``length`` +- ``sigma``."""
+
+    i: int
+    j: int
+    length: float
+    sigma: float
 
 
 @dataclass(frozen=True)
@@ -96,6 +107,33 @@ def chain_edges(poses: np.ndarray, matches: Sequence[Match]) -> list[Edge]:
         rel = g.relative(poses[k - 1], poses[k])
         edges.append(Edge(k - 1, k, rel, matches[k].covariance, matches[k].score))
     return edges
+
+
+def spacing_priors(poses: np.ndarray, matches: Sequence[Match], resolution: float) -> list[StepPrior]:
+    """In a keyframed log, each ambiguous straight step shorter than the spacing held softly at it.
+
+    The spacing and its spread come from the chain's accepted straight steps (`keyframe_spacing`;
+    the spread 1.4826 times their median absolute deviation, at least a grid cell). An ambiguous
+    step is one whose landscape has two peaks or a weak axis: along a corridor it slides short
+    (infinite-corridor scan 46: 0.474 m for 1.123). A log keeps a scan per distance travelled,
+    a least distance, so a longer step is left alone (held too, freiburg-campus whole went 0.479
+    -> 0.542 m). The prior goes into the graph only, so the chain, its submaps and the loop
+    search are as before (a fused chain, round 11 (n), sent freiburg-campus to 27 m;
+    docs/design/laser-slam.md, round 13)."""
+    rel = [g.relative(poses[k - 1], poses[k]) for k in range(1, len(poses))]
+    step = np.array([float(np.hypot(*r[:2, 2])) for r in rel])
+    turn = np.array([abs(g.so2_angle(r[:2, :2])) for r in rel])
+    accepted = np.array([m.verdict == "accepted" for m in matches[1:]], dtype=bool)
+    moving = step[accepted & (turn < STRAIGHT) & (step > resolution)]
+    spacing = keyframe_spacing(moving)
+    if spacing is None:
+        return []
+    sigma = max(1.4826 * float(np.median(np.abs(moving - spacing))), resolution)
+    return [
+        StepPrior(k - 1, k, spacing, sigma)
+        for k in range(1, len(poses))
+        if matches[k].verdict == "ambiguous" and turn[k - 1] < STRAIGHT and step[k - 1] < spacing
+    ]
 
 
 def _travelled(poses: np.ndarray) -> np.ndarray:
@@ -328,9 +366,12 @@ def consistent(
     return [e for e, keep in zip(loops, alive, strict=True) if keep]
 
 
-def optimise(poses: np.ndarray, edges: Sequence[Edge], *, robust: bool = True) -> tuple[np.ndarray, int]:
+def optimise(
+    poses: np.ndarray, edges: Sequence[Edge], *, priors: Sequence[StepPrior] = (), robust: bool = True
+) -> tuple[np.ndarray, int]:
     """Least squares over SE(2) with GTSAM; loop edges under graduated non-convexity.
 
+    ``priors``: soft distances between scans (`spacing_priors`), known inliers like the chain.
     Returns ``(poses (K, 3, 3), loop edges kept as inliers)``; node 0 stays where it is.
     """
     import gtsam
@@ -346,6 +387,9 @@ def optimise(poses: np.ndarray, edges: Sequence[Edge], *, robust: bool = True) -
         noise = gtsam.noiseModel.Gaussian.Covariance(_spd(e.covariance))
         graph.add(gtsam.BetweenFactorPose2(e.i, e.j, _pose2(e.transform), noise))
         (loop_index if e.loop else known).append(graph.size() - 1)
+    for p in priors:
+        graph.add(gtsam.RangeFactorPose2(p.i, p.j, p.length, gtsam.noiseModel.Isotropic.Sigma(1, p.sigma)))
+        known.append(graph.size() - 1)
     if robust and loop_index:
         gnc = gtsam.GncLMParams(gtsam.LevenbergMarquardtParams())
         gnc.setKnownInliers(known)

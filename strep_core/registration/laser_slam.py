@@ -5,7 +5,8 @@ verdicts and covariances), `strep_core.registration.laser_graph.search_loops` (s
 finished submaps) and `strep_core.registration.laser_graph.optimise` (graduated
 non-convexity over the loops). Every setting is derived from the data (`derive_params`,
 `loop_params`); closures that disagree with their neighbours are left out of the graph
-(`strep_core.registration.laser_graph.consistent`); why each is what it is:
+(`strep_core.registration.laser_graph.consistent`), and in a keyframed log each ambiguous
+straight step carries the spacing as a soft prior (`spacing_priors`); why each is what it is:
 docs/design/laser-slam.md.
 
 Memory and time are linear in scans: a scan's points, one voxelised cloud per finished
@@ -22,7 +23,16 @@ from typing import Any
 
 import numpy as np
 
-from strep_core.registration.laser_graph import Edge, chain_edges, consistent, loop_params, optimise, search_loops
+from strep_core.registration.laser_graph import (
+    Edge,
+    StepPrior,
+    chain_edges,
+    consistent,
+    loop_params,
+    optimise,
+    search_loops,
+    spacing_priors,
+)
 from strep_core.registration.submaps import Match, derive_params, local_slam
 from strep_core.sequence import Sequence
 
@@ -32,7 +42,8 @@ class LaserSlamResult:
     """Poses ``(K, 3, 3)`` after the graph, the local SLAM's, and what each step decided.
 
     ``loops``: every closure found; ``left_out``: the ``(i, j)`` of those that disagreed with
-    their neighbours and stayed out of the graph; ``loops_kept``: GNC's inliers among the rest."""
+    their neighbours and stayed out of the graph; ``loops_kept``: GNC's inliers among the rest;
+    ``priors``: the spacing held on short ambiguous steps of a keyframed log (`spacing_priors`)."""
 
     poses: np.ndarray
     local_poses: np.ndarray
@@ -41,6 +52,7 @@ class LaserSlamResult:
     loops_kept: int
     loops_tried: int
     left_out: frozenset[tuple[int, int]] = frozenset()
+    priors: list[StepPrior] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -73,6 +85,9 @@ class LaserSlamResult:
                 }
                 for e in self.loops
             ],
+            "spacing_priors": [
+                {"from": p.i, "to": p.j, "length": round(p.length, 6), "sigma": round(p.sigma, 6)} for p in self.priors
+            ],
             "loops_kept": self.loops_kept,
             "loops_inconsistent": self.loops_inconsistent,
             "loops_tried": self.loops_tried,
@@ -93,13 +108,14 @@ def laser_slam(
     t1 = time.perf_counter()
     lp = loop_params(params, seq.scale())
     chain = chain_edges(local, matches)
+    priors = spacing_priors(local, matches, params.resolution)
     searched: dict[tuple[int, int], np.ndarray] = {}
     loops, tried = search_loops(
         seq.frames, local, matches, submaps, params, lp, searched=searched, on_scan=on_loop_search
     )
     t2 = time.perf_counter()
     used = consistent(loops, local, matches, params, lp)
-    poses, kept = optimise(local, chain + used)
+    poses, kept = optimise(local, chain + used, priors=priors)
     t_loops, t_graph = t2 - t1, time.perf_counter() - t2
     # a second search from the graph's poses (LoopParams.passes): the first closures bring in
     # reach revisits that the chain's drift kept out (freiburg-campus 1.21 -> 0.415 m;
@@ -116,7 +132,7 @@ def laser_slam(
             break
         loops += new
         used = consistent(loops, local, matches, params, lp)
-        poses, kept = optimise(local, chain + used)
+        poses, kept = optimise(local, chain + used, priors=priors)
         t_graph += time.perf_counter() - t3
     return LaserSlamResult(
         poses=poses,
@@ -126,6 +142,7 @@ def laser_slam(
         loops_kept=kept,
         loops_tried=tried,
         left_out=frozenset((e.i, e.j) for e in loops) - {(e.i, e.j) for e in used},
+        priors=priors,
         timings={"registration": t1 - t0, "loop_closure": t_loops, "optimization": t_graph},
     )
 

@@ -31,7 +31,14 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from strep_core import geometry as g
-from strep_core.registration.motion_prior import STRAIGHT, keyframe_cost, keyframe_velocity, turn_cost, yaw_cost
+from strep_core.registration.motion_prior import (
+    STRAIGHT,
+    keyframe_cost,
+    keyframe_spacing,
+    keyframe_velocity,
+    turn_cost,
+    yaw_cost,
+)
 from strep_core.registration.params import point_spacing
 from strep_core.scanmatch import ScanMatcher, ScanMatchParams
 from strep_core.sequence import Sequence
@@ -225,16 +232,8 @@ class _Motion:
         return [s for s, t in zip(self.steps, self.turns, strict=True) if s > self.p.resolution and t < STRAIGHT]
 
     def straight_step(self) -> float | None:
-        """The keyframe spacing: the median of the accepted straight steps (over a grid cell,
-        under 10 degrees) where the log keeps a scan per distance travelled (their 10th
-        percentile within 25 % of their median, once 20 were seen), else None. Seven of the eight
-        CARMEN logs do (5th percentile 0.79-0.96 of the median), freiburg-079 does not (0.01 of
-        0.10 m; docs/design/laser-slam.md, round 7)."""
-        moving = self.moving()
-        if len(moving) < 20:
-            return None
-        med = float(np.median(moving))
-        return med if float(np.percentile(moving, 10)) >= 0.75 * med else None
+        """The keyframe spacing of the accepted straight steps so far (`keyframe_spacing`)."""
+        return keyframe_spacing(self.moving())
 
     @property
     def known(self) -> bool:
