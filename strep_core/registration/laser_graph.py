@@ -120,9 +120,9 @@ def spacing_priors(poses: np.ndarray, matches: Sequence[Match], resolution: floa
     -> 0.542 m). The prior goes into the graph only, so the chain, its submaps and the loop
     search are as before (a fused chain, round 11 (n), sent freiburg-campus to 27 m;
     docs/design/laser-slam.md, round 13)."""
-    rel = [g.relative(poses[k - 1], poses[k]) for k in range(1, len(poses))]
-    step = np.array([float(np.hypot(*r[:2, 2])) for r in rel])
-    turn = np.array([abs(g.so2_angle(r[:2, :2])) for r in rel])
+    rel = g.relative(poses[:-1], poses[1:])  # step k - 1 -> k at index k - 1
+    step = np.hypot(rel[:, 0, 2], rel[:, 1, 2])
+    turn = np.abs(g.so2_angle(rel[:, :2, :2]))
     accepted = np.array([m.verdict == "accepted" for m in matches[1:]], dtype=bool)
     moving = step[accepted & (turn < STRAIGHT) & (step > resolution)]
     spacing = keyframe_spacing(moving)

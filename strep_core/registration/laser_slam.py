@@ -6,7 +6,7 @@ finished submaps) and `strep_core.registration.laser_graph.optimise` (graduated
 non-convexity over the loops). Every setting is derived from the data (`derive_params`,
 `loop_params`); closures that disagree with their neighbours are left out of the graph
 (`strep_core.registration.laser_graph.consistent`), and in a keyframed log each ambiguous
-straight step carries the spacing as a soft prior (`spacing_priors`); why each is what it is:
+straight step shorter than the spacing is held at it softly (`spacing_priors`); why each is what it is:
 docs/design/laser-slam.md.
 
 Memory and time are linear in scans: a scan's points, one voxelised cloud per finished
