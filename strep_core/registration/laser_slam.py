@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from strep_core import geometry as g
 from strep_core.registration.laser_graph import (
     Edge,
     StepPrior,
@@ -65,28 +66,34 @@ class LaserSlamResult:
         return {v: counts.get(v, 0) for v in ("accepted", "ambiguous", "failed")}
 
     def report(self) -> dict[str, Any]:
-        """The run's match record: one entry per scan and per loop closure (JSON-ready)."""
+        """The run's match record, JSON-ready: one entry per scan (its verdict, score, the local
+        SLAM's pose ``[x, y, theta]`` and the covariance of its step) and per loop closure (its
+        relative pose ``[x, y, theta]`` and covariance), and the spacing priors: the whole pose
+        graph, so `graph_from_report` can optimise it again without matching a scan."""
         return {
             "scans": [
                 {
                     "verdict": m.verdict,
                     "score": round(float(m.score), 4),
-                    "covariance": np.round(m.covariance, 8).tolist(),
+                    "local_pose": _xytheta(pose),
+                    "covariance": np.round(m.covariance, 10).tolist(),
                 }
-                for m in self.matches
+                for m, pose in zip(self.matches, self.local_poses, strict=True)
             ],
             "loops": [
                 {
                     "from": e.i,
                     "to": e.j,
                     "score": round(float(e.score), 4),
-                    "covariance": np.round(e.covariance, 8).tolist(),
+                    "transform": _xytheta(e.transform),
+                    "covariance": np.round(e.covariance, 10).tolist(),
                     "consistent": (e.i, e.j) not in self.left_out,
                 }
                 for e in self.loops
             ],
             "spacing_priors": [
-                {"from": p.i, "to": p.j, "length": round(p.length, 6), "sigma": round(p.sigma, 6)} for p in self.priors
+                {"from": p.i, "to": p.j, "length": round(p.length, 10), "sigma": round(p.sigma, 10)}
+                for p in self.priors
             ],
             "loops_kept": self.loops_kept,
             "loops_inconsistent": self.loops_inconsistent,
@@ -145,6 +152,40 @@ def laser_slam(
         priors=priors,
         timings={"registration": t1 - t0, "loop_closure": t_loops, "optimization": t_graph},
     )
+
+
+def _xytheta(pose: np.ndarray) -> list[float]:
+    return [round(float(v), 10) for v in g.se2_to_xytheta(pose)]
+
+
+def graph_from_report(report: dict[str, Any]) -> tuple[np.ndarray, list[Edge], list[StepPrior]]:
+    """The pose graph of a run from its `LaserSlamResult.report` (``matches.json``): the local
+    SLAM's poses ``(K, 3, 3)``, the edges (the chain, then the consistent closures, in the run's
+    order) and the spacing priors. ``optimise(poses, edges, priors=priors)`` gives the run's
+    poses again (to the JSON's 10 decimals), so a back end can be compared on a saved run
+    in seconds."""
+    scans = report["scans"]
+    poses = np.stack([g.se2_from_xytheta(np.asarray(s["local_pose"], dtype=np.float64)) for s in scans])
+    verdicts = [
+        Match(s["verdict"], float(s["score"]), poses[k], np.asarray(s["covariance"])) for k, s in enumerate(scans)
+    ]
+    edges = chain_edges(poses, verdicts)
+    edges += [
+        Edge(
+            int(e["from"]),
+            int(e["to"]),
+            g.se2_from_xytheta(np.asarray(e["transform"], dtype=np.float64)),
+            np.asarray(e["covariance"], dtype=np.float64),
+            float(e["score"]),
+            loop=True,
+        )
+        for e in report["loops"]
+        if e["consistent"]
+    ]
+    priors = [
+        StepPrior(int(p["from"]), int(p["to"]), float(p["length"]), float(p["sigma"])) for p in report["spacing_priors"]
+    ]
+    return poses, edges, priors
 
 
 def is_planar_laser(seq: Sequence) -> bool:
