@@ -236,6 +236,7 @@ class ScanMatcher:
         prior: np.ndarray | None = None,
         yaw_cost: Callable[[np.ndarray], np.ndarray] | None = None,
         exclude: tuple[np.ndarray, float] | None = None,
+        at_least: float = 0.0,
     ) -> MatchResult:
         """The best source -> target pose on the grid, within the window around ``guess``.
 
@@ -244,7 +245,9 @@ class ScanMatcher:
         ``yaw_cost``: score lost at each heading (radians in, array out; a node loses the least
         over its yaws); ``exclude``: ``(translation (2,), radius)``, no leaf within it at any
         heading (the runner-up of a search whose best lies there; a node whose box lies inside
-        is dropped, one that reaches out keeps its bound)."""
+        is dropped, one that reaches out keeps its bound); ``at_least``: only leaves scoring
+        above this count, so nodes bounded at or below it are pruned from the start (a search
+        that is of use only above a score; none found: the guess with score 0)."""
         p, res = self.params, self.params.resolution
         guess = np.eye(3) if guess is None else np.asarray(guess, dtype=np.float64)
         src = np.asarray(source, dtype=np.float64)[:, :2]
@@ -319,7 +322,8 @@ class ScanMatcher:
         yg, ox, oy = (a.ravel() for a in np.meshgrid(np.arange(n_groups), offs, offs, indexing="ij"))
         bound = score(top, yg, ox, oy)
         nodes = len(bound)
-        best = (-1, 0, 0, 0)  # leaf score, yaw index, ox, oy
+        floor = int(np.floor(at_least * _Q * n_pts)) if at_least > 0 else -1
+        best = (floor, 0, 0, 0)  # leaf score, yaw index, ox, oy
         exact = True
 
         def children(L: int, yg, ox, oy, *, keep_shape: bool = False):
@@ -373,6 +377,8 @@ class ScanMatcher:
             nodes += len(bound)
 
         leaf, j, x, z = best
+        if leaf <= floor >= 0:  # no leaf above ``at_least``
+            return MatchResult(guess, 0.0, nodes, exact)
         out = np.eye(3)
         out[:2, :2] = _rot(np.array(yaws[j]))
         out[:2, 2] = self.center + t0 + res * np.array([x, z], dtype=np.float64)

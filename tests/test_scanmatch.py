@@ -88,6 +88,28 @@ def test_the_runner_up_lies_outside_the_excluded_disc() -> None:
     assert second.score < best.score - 0.2
 
 
+def test_a_search_with_a_floor_finds_the_same_peak_or_none() -> None:
+    """`at_least` below the best score: the same pose and score, with fewer nodes scored. Above
+    it: nothing (score 0, the guess back). A room matched against another room scores below half
+    the true pair's, and a floor there prunes most of the search."""
+    rng = np.random.default_rng(5)
+    target = _room(rng)
+    truth = g.se2_from_xytheta(np.array([[0.5, 0.3, np.radians(120.0)]]))[0]
+    source = g.apply(g.inverse(truth), _room(rng))
+    plain = ScanMatcher(target, PARAMS).match(source)
+    floored = ScanMatcher(target, PARAMS).match(source, at_least=0.8 * plain.score)
+    assert np.array_equal(floored.pose, plain.pose) and floored.score == plain.score
+    assert floored.nodes < plain.nodes
+    guess = g.se2_from_xytheta(np.array([[0.2, 0.1, 0.0]]))[0]
+    none = ScanMatcher(target, PARAMS).match(source, guess, at_least=plain.score + 0.01)
+    assert none.score == 0.0 and np.array_equal(none.pose, guess)
+    other = g.apply(g.se2_from_xytheta(np.array([[0.0, 0.0, 0.7]]))[0], rng.uniform(-3, 3, (300, 2)))
+    wrong = ScanMatcher(target, PARAMS).match(other)
+    assert wrong.score < 0.5 * plain.score
+    pruned = ScanMatcher(target, PARAMS).match(other, at_least=0.8 * plain.score)
+    assert pruned.score == 0.0 and pruned.nodes < 0.5 * wrong.nodes, (pruned.nodes, wrong.nodes)
+
+
 def test_a_heading_cost_picks_among_equal_headings() -> None:
     """A square room scores the same at every quarter turn; the heading cost of the branch and
     bound (score lost per heading) decides, and the search stays exact."""
