@@ -136,6 +136,9 @@ def test_laser_slam_registers_a_carmen_window_with_verdicts(intel_window) -> Non
     assert np.abs(replayed[:, :2, 2] - out.poses[:, :2, 2]).max() < 1e-5
     chain_only, _ = lg.optimise(local, [e for e in edges if not e.loop], priors=priors)
     assert np.abs(chain_only[:, :2, 2] - out.poses[:, :2, 2]).max() > 0.05
+    old = {**report, "scans": [{k: v for k, v in s.items() if k != "local_pose"} for s in report["scans"]]}
+    with pytest.raises(ValueError, match="no local poses"):
+        graph_from_report(old)
 
 
 def test_multiway_on_a_carmen_window_writes_its_matches(intel_window, tmp_path) -> None:

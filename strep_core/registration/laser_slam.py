@@ -165,6 +165,11 @@ def graph_from_report(report: dict[str, Any]) -> tuple[np.ndarray, list[Edge], l
     poses again (to the JSON's 10 decimals), so a back end can be compared on a saved run
     in seconds."""
     scans = report["scans"]
+    if not scans or any("local_pose" not in s for s in scans) or any("transform" not in e for e in report["loops"]):
+        raise ValueError(
+            "this matches.json has no local poses or closure transforms: it is not a planar laser's "
+            "multiway run, or it was written before they were saved"
+        )
     poses = np.stack([g.se2_from_xytheta(np.asarray(s["local_pose"], dtype=np.float64)) for s in scans])
     verdicts = [
         Match(s["verdict"], float(s["score"]), poses[k], np.asarray(s["covariance"])) for k, s in enumerate(scans)
