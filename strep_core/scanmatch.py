@@ -377,7 +377,7 @@ class ScanMatcher:
             nodes += len(bound)
 
         leaf, j, x, z = best
-        if leaf <= floor >= 0:  # no leaf above ``at_least``
+        if floor >= 0 and leaf == floor:  # no leaf above ``at_least`` (best starts there)
             return MatchResult(guess, 0.0, nodes, exact)
         out = np.eye(3)
         out[:2, :2] = _rot(np.array(yaws[j]))

@@ -28,12 +28,6 @@ from strep_core.registration.motion_prior import STRAIGHT, keyframe_spacing
 from strep_core.registration.submaps import LaserSlamParams, Match, Submap, normals_2d, refine
 from strep_core.scanmatch import ScanMatcher, ScanMatchParams
 
-# a closure's search prunes what scores below this share of the score it must reach: the branch
-# and bound scores the reaching points only, which score about as high as all of them, and no
-# closure of the eight logs started below 0.95 of its floor (poses bitwise as before, the loop
-# search 2-3 times faster where most searches fail; docs/design/laser-slam.md, round 14)
-SEARCH_FLOOR = 0.8
-
 
 @dataclass(frozen=True)
 class Edge:
@@ -86,6 +80,11 @@ class LoopParams:
             round 10).
         runner_margin: a runner-up that refines to another place scoring within this of the
             best makes the closure an alias, left out.
+        search_floor: a closure's branch and bound prunes below this share of the score the
+            closure must reach (it scores the reaching points only, which score about as high as
+            all of them); no closure of the eight logs started below 0.95 of it, every pose is
+            bitwise as without it, and the loop search is 2-3 times faster where most searches
+            fail (docs/design/laser-slam.md, round 14).
     """
 
     every: float
@@ -99,6 +98,7 @@ class LoopParams:
     neighbours: float = 20.0
     runner_up: float = 8.0
     runner_margin: float = 0.05
+    search_floor: float = 0.8
 
 
 def loop_params(slam: LaserSlamParams, scale: float) -> LoopParams:
@@ -250,7 +250,7 @@ def _close(
 ) -> tuple[Edge, Callable[[], bool]] | None:
     """One scan against one finished submap; ``None`` unless one clear peak, else the closure
     and its runner-up test (`_aliased`, run on demand). ``floor``: the score a closure needs;
-    the branch and bound prunes below `SEARCH_FLOOR` of it, and finding nothing there is no
+    the branch and bound prunes below ``loop.search_floor`` of it, and finding nothing there is no
     closure (docs/design/laser-slam.md, round 14)."""
     res = slam.resolution
     yaw_window = loop.yaw_window
@@ -265,7 +265,7 @@ def _close(
     # scores below count every point; docs/design/laser-slam.md)
     reach = np.linalg.norm(target - guess[:2, 2], axis=1).max() + np.sqrt(2) * radius + 3 * params.field_sigma
     reaching = pts[np.linalg.norm(pts, axis=1) <= reach]
-    found = matcher.match(reaching, guess, at_least=SEARCH_FLOOR * floor)
+    found = matcher.match(reaching, guess, at_least=loop.search_floor * floor)
     if floor > 0 and found.score == 0:
         return None
     found = dataclasses.replace(found, score=matcher.evaluate(pts, found.pose))
