@@ -82,9 +82,10 @@ class LoopParams:
             best makes the closure an alias, left out.
         search_floor: a closure's branch and bound prunes below this share of the score the
             closure must reach (it scores the reaching points only, which score about as high as
-            all of them); no closure of the eight logs started below 0.95 of it, every pose is
-            bitwise as without it, and the loop search is 2-3 times faster where most searches
-            fail (docs/design/laser-slam.md, round 14).
+            all of them); the loop search is 2-3 times faster where most searches fail, every
+            pose of the eight logs from identity is as without it, and one closure in about 1,000
+            (a peak on the window's edge refined out of it) is lost (docs/design/laser-slam.md,
+            rounds 14-15).
     """
 
     every: float
