@@ -17,7 +17,9 @@ beyond the refinement's Chamfer reach, so they are closed here, before it:
    times the inverse of its normal matrix).
 3. **Graph.** GTSAM least squares with graduated non-convexity over the loops
    (`registration.laser_graph.optimise`), the chain's edges known inliers; then the loop search
-   once more from the graph's poses (`LOOP_PASSES`), as the laser logs' second pass does.
+   once more from the graph's poses (`LOOP_PASSES`). The laser logs' search repeats until a pass
+   finds nothing new (`LoopParams.passes`, round 17); these windows keep two passes, not measured
+   with more.
 
 Planar sequences only (GTSAM's Pose2); 3D windows are joined as before.
 """

@@ -126,6 +126,9 @@ def test_laser_slam_registers_a_carmen_window_with_verdicts(intel_window) -> Non
     assert {s["verdict"] for s in report["scans"]} <= {"accepted", "ambiguous", "failed"}
     cov = np.asarray(report["scans"][10]["covariance"])
     assert cov.shape == (3, 3) and np.all(np.linalg.eigvalsh(cov) > 0)
+    # the loop search ran until a pass found nothing new: every closure is counted in one pass
+    assert sum(out.loop_passes) == len(out.loops) and report["loop_passes"] == list(out.loop_passes)
+    assert len(out.loop_passes) >= 2 and out.loop_passes[-1] == 0 and min(out.loop_passes[:-1]) > 0
     # the report holds the whole graph: optimised again from it, the same poses, and the same
     # graph with the closures left out is the chain's (a replay that ignored them would pass too)
     local, edges, priors = graph_from_report(json.loads(json.dumps(report)))

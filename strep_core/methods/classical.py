@@ -246,6 +246,7 @@ def _laser_multiway(seq: Sequence, init: np.ndarray, config: RunConfig, ctx: Run
             "loop_candidates": out.loops_tried,
             "loop_source": "submaps",
             "loop_edges": len(out.loops),
+            "loop_passes": len(out.loop_passes),
             "matches": out.report(),
         },
         metrics={

@@ -44,7 +44,9 @@ class LaserSlamResult:
 
     ``loops``: every closure found; ``left_out``: the ``(i, j)`` of those that disagreed with
     their neighbours and stayed out of the graph; ``loops_kept``: GNC's inliers among the rest;
-    ``priors``: the spacing held on short ambiguous steps of a keyframed log (`spacing_priors`)."""
+    ``priors``: the spacing held on short ambiguous steps of a keyframed log (`spacing_priors`);
+    ``loop_passes``: the new closures each pass of the loop search found (the last is 0 unless the
+    search stopped at `LoopParams.passes`)."""
 
     poses: np.ndarray
     local_poses: np.ndarray
@@ -55,6 +57,7 @@ class LaserSlamResult:
     left_out: frozenset[tuple[int, int]] = frozenset()
     priors: list[StepPrior] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
+    loop_passes: tuple[int, ...] = ()
 
     @property
     def loops_inconsistent(self) -> int:
@@ -98,6 +101,7 @@ class LaserSlamResult:
             "loops_kept": self.loops_kept,
             "loops_inconsistent": self.loops_inconsistent,
             "loops_tried": self.loops_tried,
+            "loop_passes": list(self.loop_passes),
         }
 
 
@@ -124,15 +128,18 @@ def laser_slam(
     used = consistent(loops, local, matches, params, lp)
     poses, kept = optimise(local, chain + used, priors=priors)
     t_loops, t_graph = t2 - t1, time.perf_counter() - t2
-    # a second search from the graph's poses (LoopParams.passes): the first closures bring in
-    # reach revisits that the chain's drift kept out (freiburg-campus 1.21 -> 0.415 m;
-    # docs/design/laser-slam.md)
+    passes = [len(loops)]
+    # searches again from the graph's poses until one finds nothing new (LoopParams.passes): each
+    # pass's closures bring into reach revisits that the chain's drift kept out (freiburg-campus
+    # 1.21 -> 0.415 m with a second pass, infinite-corridor 1.02 -> 0.365 m with a third and
+    # fourth; docs/design/laser-slam.md, round 17)
     for _ in range(lp.passes - 1):
         t2 = time.perf_counter()
         found, n = search_loops(seq.frames, local, matches, submaps, params, lp, estimates=poses, searched=searched)
         have = {(e.i, e.j) for e in loops}
         new = [e for e in found if (e.i, e.j) not in have]
         tried += n
+        passes.append(len(new))
         t3 = time.perf_counter()
         t_loops += t3 - t2
         if not new:
@@ -151,6 +158,7 @@ def laser_slam(
         left_out=frozenset((e.i, e.j) for e in loops) - {(e.i, e.j) for e in used},
         priors=priors,
         timings={"registration": t1 - t0, "loop_closure": t_loops, "optimization": t_graph},
+        loop_passes=tuple(passes),
     )
 
 
