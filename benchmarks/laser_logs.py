@@ -54,6 +54,7 @@ def one(log: str, window: str, method: str, frontend: str) -> dict[str, object]:
         "ambiguous": m.get("matches_ambiguous"),
         "loops_kept": m.get("loops_kept"),
         "loops_rejected": m.get("loops_rejected"),
+        "loop_passes": res.artifacts.get("loop_passes"),
     }
 
 
