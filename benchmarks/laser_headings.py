@@ -28,7 +28,8 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-DATA = Path("../shared/data/carmen")
+from laser_logs import DATA, peak_mb  # a sibling script: run from benchmarks/, as the usage says
+
 # every log from identity (the longest first, so two at a time finish together), and the two
 # that move most at three more headings (rounds 13-17)
 LONGEST_FIRST = ("freiburg-079", "infinite-corridor", "freiburg-campus", "intel", "aces", "belgioioso", "acapulco")
@@ -57,9 +58,6 @@ def one(log: str, heading: float, out: Path) -> dict[str, object]:
     out.mkdir(parents=True, exist_ok=True)
     (out / "matches.json").write_text(json.dumps(res.report()))
     np.savez(out / "poses.npz", poses=res.poses, local=res.local_poses, gt=gt)
-    hwm = next(
-        int(line.split()[1]) for line in Path("/proc/self/status").read_text().splitlines() if line.startswith("VmHWM")
-    )
     return {
         "log": log,
         "heading": heading,
@@ -67,7 +65,7 @@ def one(log: str, heading: float, out: Path) -> dict[str, object]:
         "ate": round(float(ate(res.poses, gt)), 4),
         "local_ate": round(float(ate(res.local_poses, gt)), 3),
         "wall_seconds": round(wall, 1),
-        "peak_mb": round(hwm / 1024),
+        "peak_mb": peak_mb(),
         **res.verdicts(),
         "loops": len(res.loops),
         "loops_kept": res.loops_kept,

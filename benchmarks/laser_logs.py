@@ -22,6 +22,12 @@ LOGS = ("intel", "aces", "belgioioso", "acapulco", "edmonton", "freiburg-079", "
 DATA = Path("../shared/data/carmen")
 
 
+def peak_mb() -> int:
+    """This process's peak resident memory (Linux's ``VmHWM``), in MB."""
+    status = Path("/proc/self/status").read_text().splitlines()
+    return round(next(int(line.split()[1]) for line in status if line.startswith("VmHWM")) / 1024)
+
+
 def one(log: str, window: str, method: str, frontend: str) -> dict[str, object]:
     """Run in this process; returns the row (called in a child by `main`)."""
     from strep_core.config import RunConfig
@@ -33,9 +39,6 @@ def one(log: str, window: str, method: str, frontend: str) -> dict[str, object]:
     cfg = {"method": method, "classical": {"posegraph": {"frontend": frontend}}}
     res = run(seq, RunConfig.model_validate(cfg))
     wall = time.perf_counter() - t0
-    hwm = next(
-        int(line.split()[1]) for line in Path("/proc/self/status").read_text().splitlines() if line.startswith("VmHWM")
-    )
     m = res.metrics
     usage = resource.getrusage(resource.RUSAGE_SELF)
     return {
@@ -49,7 +52,7 @@ def one(log: str, window: str, method: str, frontend: str) -> dict[str, object]:
         "wall_seconds": round(wall, 1),
         "cpu_seconds": round(usage.ru_utime + usage.ru_stime, 1),  # the whole process: steadier under load
         "ms_per_scan": round(1000 * wall / len(seq), 1),
-        "peak_mb": round(hwm / 1024),
+        "peak_mb": peak_mb(),
         "failed": m.get("matches_failed"),
         "ambiguous": m.get("matches_ambiguous"),
         "loops_kept": m.get("loops_kept"),
